@@ -1,0 +1,245 @@
+"""`gns-bench`: a thin command line over the library. Parses, calls, prints."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from gns_bench.config import ConfigError
+from gns_bench.data.format import DatasetError
+
+CONFIGS = Path(__file__).resolve().parent / "configs"
+
+
+def _add_generate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("generate", help="generate a dataset for a domain (the 16 paper domains, or 'tiny')")
+    p.add_argument("domain", help="domain id, e.g. waterdrop, sand-3d, boxbath, or tiny (no physics engine)")
+    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"],
+                   help="smoke: seconds (tests); small: ~30 min on 2 cores; paper: the paper's sizes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=None, help="dataset directory (default data/<domain>-<tier>-s<seed>)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+
+
+def cmd_generate(args: argparse.Namespace) -> None:
+    if args.domain == "tiny":
+        from gns_bench.data.tiny import generate_tiny
+
+        out = args.out or Path("data") / f"tiny-{args.tier}-s{args.seed}"
+        if out.exists() and not args.overwrite:
+            print(f"{out} exists; reusing it (--overwrite to regenerate)")
+        else:
+            generate_tiny(out, args.tier, args.seed, overwrite=args.overwrite)
+        print(out)
+        return
+    from gns_bench.physics.generate import generate_dataset
+
+    if args.overwrite and args.out is not None and args.out.exists():
+        import shutil
+
+        shutil.rmtree(args.out)
+    print(generate_dataset(args.domain, args.tier, args.seed, args.out))
+
+
+def _add_render(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="draw a trajectory of a dataset as a PNG strip and a GIF")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    p.add_argument("--traj", type=int, default=0)
+    p.add_argument("--out", type=Path, default=None, help="output path stem (default beside the dataset)")
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    from gns_bench.physics.render import render_dataset
+
+    png, gif = render_dataset(args.dataset, args.split, args.traj, args.out)
+    print(png)
+    print(gif)
+
+
+def _add_import(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import", help="convert another project's dataset layout into ours")
+    p.add_argument("source_format", choices=["deepmind", "npz"],
+                   help="deepmind: the original TFRecord release; npz: geoelements/gns")
+    p.add_argument("src", type=Path, help="source directory (metadata.json + train/valid/test files)")
+    p.add_argument("dst", type=Path, help="new dataset directory")
+    p.add_argument("--overwrite", action="store_true")
+
+
+def cmd_import(args: argparse.Namespace) -> None:
+    from gns_bench.data.importers import import_deepmind, import_npz
+
+    importer = import_deepmind if args.source_format == "deepmind" else import_npz
+    print(importer(args.src, args.dst, overwrite=args.overwrite))
+
+
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train a GNS on a dataset, tracked in MLflow",
+                       description="Overrides are section.key=value, e.g. model.message_passing_steps=5 "
+                                   "train.steps=1000 train.noise_std=6.7e-4")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("overrides", nargs="*", help="section.key=value overrides of the config")
+    p.add_argument("--config", type=Path, default=None, help="TOML config (default: the paper's defaults)")
+    p.add_argument("--out", type=Path, default=None, help="run directory (default runs/<dataset>)")
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
+    p.add_argument("--experiment", default="gns-bench", help="MLflow experiment name")
+    p.add_argument("--no-eval", action="store_true", help="skip the evaluation after training")
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    from gns_bench.config import load_config
+    from gns_bench.pipeline import train_run
+
+    config = load_config(args.config, args.overrides)
+    out = args.out or Path("runs") / args.dataset.name
+    summary = train_run(config, args.dataset, out, experiment=args.experiment, resume=args.resume,
+                        evaluate_after=not args.no_eval)
+    _print_summary(summary)
+
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="one-step and rollout MSE of a checkpoint on a split, tracked in MLflow")
+    p.add_argument("checkpoint", type=Path, help="checkpoint file or run directory")
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--split", default="test", choices=["valid", "test"])
+    p.add_argument("--max-trajectories", type=int, default=None)
+    p.add_argument("--rollout-steps", type=int, default=None)
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--experiment", default="gns-bench")
+    p.add_argument("--device", default="auto")
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    from gns_bench.config import EvalConfig
+    from gns_bench.pipeline import evaluate_run
+
+    eval_config = EvalConfig(split=args.split, max_trajectories=args.max_trajectories,
+                             rollout_steps=args.rollout_steps)
+    eval_config.validate()
+    _print_summary(evaluate_run(args.checkpoint, args.dataset, eval_config, out_dir=args.out,
+                                experiment=args.experiment, device=args.device))
+
+
+def _add_rollout(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("rollout", help="roll a checkpoint out on one trajectory; save it with a picture")
+    p.add_argument("checkpoint", type=Path)
+    p.add_argument("dataset", type=Path)
+    p.add_argument("--split", default="test", choices=["train", "valid", "test"])
+    p.add_argument("--traj", type=int, default=0)
+    p.add_argument("--steps", type=int, default=None, help="rollout length (default: to the end)")
+    p.add_argument("--out", type=Path, default=None, help="output stem (default rollout-<split>-<traj>)")
+    p.add_argument("--device", default="auto")
+
+
+def cmd_rollout(args: argparse.Namespace) -> None:
+    import numpy as np
+
+    from gns_bench.data.format import load_split
+    from gns_bench.evaluate import metrics
+    from gns_bench.evaluate.plots import plot_rollout
+    from gns_bench.evaluate.rollout import rollout
+    from gns_bench.train.loop import load_simulator, resolve_device
+
+    device = resolve_device(args.device)
+    simulator, config, _ = load_simulator(args.checkpoint, device)
+    trajectories = load_split(args.dataset, args.split, min_length=config.model.input_sequence_length + 1)
+    if not 0 <= args.traj < len(trajectories):
+        raise DatasetError(args.dataset / f"{args.split}.h5", f"no trajectory {args.traj} "
+                           f"(the split has {len(trajectories)})")
+    result = rollout(simulator, trajectories[args.traj], args.steps, device=device)
+    stem = args.out or Path(f"rollout-{args.split}-{args.traj}")
+    np.savez_compressed(f"{stem}.npz", predicted=result.predicted, ground_truth=result.ground_truth,
+                        initial_window=result.initial_window, particle_type=result.particle_type)
+    mse = metrics.rollout_mse(result.predicted, result.ground_truth, result.moving_mask)
+    from gns_bench.data.format import read_metadata
+
+    plot_rollout(result, f"{stem}.png", read_metadata(args.dataset).bounds, title=f"rollout MSE {mse:.3g}")
+    print(f"rollout MSE {mse:.4g} over {result.predicted.shape[0]} steps")
+    print(f"{stem}.npz\n{stem}.png")
+
+
+def _add_ui(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("ui", help="serve the MLflow UI on 127.0.0.1")
+    p.add_argument("--port", type=int, default=5000)
+
+
+def cmd_ui(args: argparse.Namespace) -> None:
+    from gns_bench.tracking import tracking_uri
+
+    uri = tracking_uri()
+    print(f"MLflow UI for {uri} at http://127.0.0.1:{args.port}")
+    subprocess.run([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
+                    "--host", "127.0.0.1", "--port", str(args.port)], check=False)
+
+
+def _add_quickstart(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("quickstart", help="tiny dataset -> short training -> evaluation, all in MLflow (~1 min)")
+    p.add_argument("--workdir", type=Path, default=Path("."), help="where data/, runs/ and mlflow.db go")
+
+
+def cmd_quickstart(args: argparse.Namespace) -> None:
+    from gns_bench.config import load_config
+    from gns_bench.data.tiny import generate_tiny
+    from gns_bench.pipeline import train_run
+    from gns_bench.tracking import tracking_uri
+
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    os.chdir(args.workdir)
+    dataset = Path("data/tiny-smoke-s0")
+    if not dataset.exists():
+        generate_tiny(dataset, "smoke", 0)
+    print(f"dataset: {dataset.resolve()}")
+    config = load_config(CONFIGS / "quickstart.toml")
+    out = Path("runs/quickstart")
+    summary = train_run(config, dataset, out, experiment="quickstart", run_name="quickstart",
+                        resume=(out / "checkpoint.pt").exists())
+    _print_summary(summary)
+    print(f"MLflow store: {tracking_uri()} (experiment 'quickstart'); browse it with: gns-bench ui")
+
+
+def _print_summary(summary) -> None:
+    print(f"MLflow run: {summary.run_id}")
+    print(f"run directory: {summary.out_dir.resolve()}")
+    for key in ("one_step_mse", "rollout_mse", "baseline_cv_rollout_mse"):
+        if key in summary.metrics:
+            print(f"  {key:24s} {summary.metrics[key]:.4g}")
+
+
+COMMANDS = {
+    "generate": (_add_generate, cmd_generate),
+    "render": (_add_render, cmd_render),
+    "import": (_add_import, cmd_import),
+    "train": (_add_train, cmd_train),
+    "evaluate": (_add_evaluate, cmd_evaluate),
+    "rollout": (_add_rollout, cmd_rollout),
+    "ui": (_add_ui, cmd_ui),
+    "quickstart": (_add_quickstart, cmd_quickstart),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gns-bench", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add, _ in COMMANDS.values():
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        COMMANDS[args.command][1](args)
+    except (DatasetError, ConfigError, FileExistsError, FileNotFoundError, ValueError) as exc:
+        print(f"gns-bench {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gns-bench {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,228 @@
+"""Typed configuration: every ablation axis of the paper is a field here, with the paper's default.
+
+A config is loaded from TOML (sections `[model]`, `[train]`, `[eval]`), then `key=value` overrides
+with dotted keys (`model.message_passing_steps=5`) are applied, then it is validated once. Errors name
+the file and the key. The resolved config is logged whole (`Config.flat()`), so no default hides deep
+in the call chain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+
+class ConfigError(ValueError):
+    """A bad configuration value; the message names the source and the key."""
+
+
+@dataclass
+class ModelConfig:
+    """The learned simulator (paper Sec. 3-4.2, Appendix A; REFERENCE.md 'Model')."""
+
+    message_passing_steps: int = 10  # M
+    latent_size: int = 128
+    mlp_hidden_layers: int = 2
+    mlp_hidden_size: int = 128
+    shared_processor: bool = False  # the paper's default is unshared GN blocks
+    position_encoding: Literal["relative", "absolute"] = "relative"
+    self_edges: bool = False
+    global_latent: bool = False  # a global latent updated per GN block (ablation, App. C.1)
+    gravity_bias: bool = False  # add the dataset's known gravity to the decoder output (ablation)
+    linear_encoder_decoder: bool = False  # linear instead of MLP encoder/decoder (ablation)
+    particle_type_embedding_size: int = 16
+    input_sequence_length: int = 6  # positions in the input window: C = 5 velocities
+    connectivity_radius: float | None = None  # R; None takes the dataset's default_connectivity_radius
+    neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
+
+    def validate(self) -> None:
+        _require(self.message_passing_steps >= 0, "model.message_passing_steps", "must be >= 0")
+        _require(self.latent_size > 0, "model.latent_size", "must be > 0")
+        _require(self.mlp_hidden_layers >= 0, "model.mlp_hidden_layers", "must be >= 0")
+        _require(self.mlp_hidden_size > 0, "model.mlp_hidden_size", "must be > 0")
+        _require(self.input_sequence_length >= 2, "model.input_sequence_length",
+                 "must be >= 2 (one velocity needs two positions)")
+        _require(self.connectivity_radius is None or self.connectivity_radius > 0,
+                 "model.connectivity_radius", "must be > 0")
+        _require(self.particle_type_embedding_size > 0, "model.particle_type_embedding_size", "must be > 0")
+
+
+@dataclass
+class TrainConfig:
+    """One-step training with random-walk noise (paper Sec. 4.3, App. B.3)."""
+
+    steps: int = 20_000_000
+    batch_size: int = 2  # graphs per batch
+    learning_rate: float = 1e-4
+    learning_rate_final: float = 1e-6
+    learning_rate_decay_steps: float = 5e6  # lr = (lr0 - lr_final) * 0.1^(step / decay) + lr_final
+    noise_std: float = 3e-4  # sigma_v: the paper's GOOP optimum; the released code used 6.7e-4
+    position_correction: float = 0.0  # 0 = correct velocity noise (paper default) .. 1 = position noise
+    seed: int = 0
+    checkpoint_every: int = 1000
+    log_every: int = 100
+    device: str = "auto"  # "auto" picks CUDA when present
+    num_threads: int | None = None  # torch CPU threads; None keeps torch's default
+
+    def validate(self) -> None:
+        _require(self.steps >= 0, "train.steps", "must be >= 0")
+        _require(self.batch_size >= 1, "train.batch_size", "must be >= 1")
+        _require(self.learning_rate > 0, "train.learning_rate", "must be > 0")
+        _require(0 <= self.learning_rate_final <= self.learning_rate, "train.learning_rate_final",
+                 "must be in [0, learning_rate]")
+        _require(self.learning_rate_decay_steps > 0, "train.learning_rate_decay_steps", "must be > 0")
+        _require(self.noise_std >= 0, "train.noise_std", "must be >= 0")
+        _require(0.0 <= self.position_correction <= 1.0, "train.position_correction", "must be in [0, 1]")
+        _require(self.checkpoint_every >= 1, "train.checkpoint_every", "must be >= 1")
+        _require(self.log_every >= 1, "train.log_every", "must be >= 1")
+        _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation (paper Sec. 4.4): one-step and rollout MSE on a held-out split."""
+
+    split: Literal["valid", "test"] = "test"
+    max_trajectories: int | None = None  # None: every trajectory of the split
+    rollout_steps: int | None = None  # None: to the end of each trajectory
+    one_step_windows: int | None = None  # windows per trajectory for one-step MSE; None: all
+
+    def validate(self) -> None:
+        _require(self.max_trajectories is None or self.max_trajectories >= 1, "eval.max_trajectories",
+                 "must be >= 1")
+        _require(self.rollout_steps is None or self.rollout_steps >= 1, "eval.rollout_steps", "must be >= 1")
+        _require(self.one_step_windows is None or self.one_step_windows >= 1, "eval.one_step_windows",
+                 "must be >= 1")
+
+
+@dataclass
+class Config:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+    def validate(self) -> Config:
+        self.model.validate()
+        self.train.validate()
+        self.eval.validate()
+        return self
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+    def flat(self) -> dict[str, Any]:
+        """Dotted keys, as logged to MLflow params."""
+        return {f"{section}.{key}": value for section, values in self.to_dict().items()
+                for key, value in values.items()}
+
+
+def _require(condition: bool, key: str, message: str) -> None:
+    if not condition:
+        raise ConfigError(f"{key}: {message}")
+
+
+def _coerce(value: Any, annotation: Any, key: str) -> Any:
+    """Check `value` against a field's type annotation (bool, int, float, str, Literal, Optional)."""
+    origin = typing.get_origin(annotation)
+    if origin is Literal:
+        if value not in typing.get_args(annotation):
+            raise ConfigError(f"{key}: expected one of {list(typing.get_args(annotation))}, got {value!r}")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(annotation)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0])
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+    elif annotation is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif annotation is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif annotation is str:
+        if isinstance(value, str):
+            return value
+    else:
+        return value
+    raise ConfigError(f"{key}: expected {getattr(annotation, '__name__', annotation)}, got {value!r}")
+
+
+def _parse_override_value(text: str) -> Any:
+    """`key=value` overrides take TOML literals (`5`, `1e-4`, `true`, `"scipy"`); bare words are strings."""
+    if text.lower() in ("none", "null"):
+        return None
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> Config:
+    config = Config()
+    hints_by_section = {f.name: typing.get_type_hints(type(getattr(config, f.name)))
+                        for f in dataclasses.fields(Config)}
+    for section, values in data.items():
+        if section not in hints_by_section:
+            raise ConfigError(f"{source}: unknown section [{section}]; expected one of "
+                              f"{sorted(hints_by_section)}")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{source}: [{section}] must be a table")
+        target, hints = getattr(config, section), hints_by_section[section]
+        for key, value in values.items():
+            if key not in hints:
+                raise ConfigError(f"{source}: unknown key '{section}.{key}'; known keys: {sorted(hints)}")
+            try:
+                setattr(target, key, _coerce(value, hints[key], f"{section}.{key}"))
+            except ConfigError as exc:
+                raise ConfigError(f"{source}: {exc}") from None
+    try:
+        return config.validate()
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Merge `section.key=value` strings into a nested dict (returns a new dict)."""
+    merged = {section: dict(values) for section, values in data.items()}
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r}: expected section.key=value")
+        dotted, raw = item.split("=", 1)
+        if dotted.count(".") != 1:
+            raise ConfigError(f"override {item!r}: expected section.key=value, e.g. model.latent_size=64")
+        section, key = dotted.strip().split(".")
+        merged.setdefault(section, {})[key] = _parse_override_value(raw.strip())
+    return merged
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    data: dict[str, Any] = {}
+    source = "<defaults>"
+    if path is not None:
+        source = str(path)
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: no such file") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML ({exc})") from None
+    if overrides:
+        source += " + overrides"
+        data = apply_overrides(data, overrides)
+    return config_from_dict(data, source)

@@ -1,0 +1,96 @@
+"""One-step training samples: windows of W+1 consecutive frames, batched as disjoint graphs.
+
+A sample is (trajectory index, t): input positions t-W+1 .. t and the target t+1 (REFERENCE.md
+'Training'). Batches are drawn from a generator seeded by (seed, step), so any step's batch can be
+rebuilt without replaying the ones before it: resuming a run is exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from gns_bench.data.format import Trajectory
+
+
+@dataclass
+class GraphBatch:
+    """Disjoint graphs concatenated along the particle axis."""
+
+    window: torch.Tensor  # [sum N, W, D] input positions
+    particle_type: torch.Tensor  # [sum N]
+    batch: torch.Tensor  # [sum N] graph index
+    context: torch.Tensor | None  # [B, C] context at the last input frame
+    target: torch.Tensor | None  # [sum N, D] next positions (None when there is no target frame)
+
+    @property
+    def num_graphs(self) -> int:
+        return int(self.batch[-1]) + 1
+
+    def to(self, device: torch.device | str) -> GraphBatch:
+        def move(t: torch.Tensor | None) -> torch.Tensor | None:
+            return None if t is None else t.to(device, non_blocking=True)
+
+        return GraphBatch(move(self.window), move(self.particle_type), move(self.batch), move(self.context),
+                          move(self.target))
+
+
+def make_batch(trajectories: list[Trajectory], samples: list[tuple[int, int]], window: int,
+               with_target: bool = True) -> GraphBatch:
+    """Stack samples (trajectory index, last input frame t) into one batch of disjoint graphs."""
+    windows, types, graph, contexts, targets = [], [], [], [], []
+    for index, (traj_index, t) in enumerate(samples):
+        traj = trajectories[traj_index]
+        frames = traj.position[t - window + 1: t + 1]  # [W, N, D]
+        windows.append(np.swapaxes(frames, 0, 1))
+        types.append(traj.particle_type)
+        graph.append(np.full(traj.num_particles, index, dtype=np.int64))
+        if traj.step_context is not None:
+            contexts.append(traj.step_context[t])
+        if with_target:
+            targets.append(traj.position[t + 1])
+    return GraphBatch(
+        window=torch.from_numpy(np.concatenate(windows)),
+        particle_type=torch.from_numpy(np.concatenate(types)),
+        batch=torch.from_numpy(np.concatenate(graph)),
+        context=torch.from_numpy(np.stack(contexts)) if contexts else None,
+        target=torch.from_numpy(np.concatenate(targets)) if with_target else None,
+    )
+
+
+class WindowSampler:
+    """Uniform random training windows over all trajectories, deterministic per (seed, step)."""
+
+    def __init__(self, trajectories: list[Trajectory], window: int, seed: int):
+        self.trajectories = trajectories
+        self.window = window
+        self.seed = seed
+        # Valid last-input frames t: window-1 .. T-2 (t+1 must exist).
+        self.counts = np.array([traj.num_steps - window for traj in trajectories], dtype=np.int64)
+        if np.any(self.counts < 1):
+            short = int(np.argmin(self.counts))
+            raise ValueError(f"trajectory {short} has {trajectories[short].num_steps} frames; a training "
+                             f"window needs {window + 1}")
+        self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def rng(self, step: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, step])
+
+    def samples(self, step: int, batch_size: int) -> list[tuple[int, int]]:
+        flat = self.rng(step).integers(0, len(self), size=batch_size)
+        traj = np.searchsorted(self.offsets, flat, side="right") - 1
+        t = flat - self.offsets[traj] + self.window - 1
+        return [(int(i), int(j)) for i, j in zip(traj, t, strict=True)]
+
+    def batch(self, step: int, batch_size: int) -> GraphBatch:
+        return make_batch(self.trajectories, self.samples(step, batch_size), self.window)
+
+    def noise_generator(self, step: int) -> torch.Generator:
+        generator = torch.Generator()
+        generator.manual_seed(int(np.random.default_rng([self.seed, step, 1]).integers(0, 2**62)))
+        return generator

@@ -1,0 +1,54 @@
+"""Pictures of rollouts: ground truth above, prediction below, at a few steps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from gns_bench.evaluate.rollout import RolloutResult  # noqa: E402
+
+TYPE_COLOURS = {0: "tab:red", 3: "0.45", 5: "tab:blue", 6: "tab:orange", 7: "tab:green"}
+
+
+def type_colours(particle_type: np.ndarray) -> list[str]:
+    return [TYPE_COLOURS.get(int(t), "tab:purple") for t in particle_type]
+
+
+def plot_rollout(result: RolloutResult, path: str | Path, bounds: list[list[float]] | None = None,
+                 num_frames: int = 4, title: str = "") -> Path:
+    """A 2 x num_frames grid; 3D data is shown projected on its first and last axes."""
+    k = min(result.predicted.shape[0], result.ground_truth.shape[0])
+    if k == 0:
+        raise ValueError("empty rollout: nothing to plot")
+    steps = np.unique(np.linspace(0, k - 1, num_frames).round().astype(int))
+    colours = type_colours(result.particle_type)
+    axes_dims = (0, result.predicted.shape[2] - 1)
+    fig, axes = plt.subplots(2, len(steps), figsize=(2.4 * len(steps), 5.0), squeeze=False)
+    for column, step in enumerate(steps):
+        for row, (label, frames) in enumerate((("ground truth", result.ground_truth),
+                                               ("GNS", result.predicted))):
+            ax = axes[row, column]
+            xy = frames[step][:, axes_dims]
+            ax.scatter(xy[:, 0], xy[:, 1], s=2, c=colours, linewidths=0)
+            if bounds is not None:
+                ax.set_xlim(bounds[axes_dims[0]])
+                ax.set_ylim(bounds[axes_dims[1]])
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"step {step + 1}", fontsize=9)
+            if column == 0:
+                ax.set_ylabel(label, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path

@@ -1,0 +1,138 @@
+"""Neighbour search: directed edges between every pair of particles closer than the connectivity radius.
+
+One entry point, `radius_graph`, with backends behind it:
+  scipy          cKDTree per graph on the CPU (the fastest measured on CPU; the default)
+  torch_cluster  torch_cluster.radius_graph, when installed (CPU or CUDA), never capped
+  cell_list      a pure-torch cell list that runs wherever torch runs, CUDA included
+
+Every backend only proposes candidate pairs (searching a hair beyond R); one shared exact test in
+float64, |x_s - x_r|^2 <= R^2, decides, so all backends return the same edge set, in the same order
+(sorted by receiver, then sender). Edges follow PyG's convention: edge_index[0] are senders
+(sources), edge_index[1] receivers (targets); messages flow sender -> receiver.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+BACKENDS = ("scipy", "torch_cluster", "cell_list")
+_SEARCH_SLACK = 1.0 + 1e-5  # candidates are searched at R * slack, then filtered exactly at R
+
+
+def radius_graph(positions: torch.Tensor, radius: float, batch: torch.Tensor | None = None, *,
+                 backend: str = "scipy", self_edges: bool = False) -> torch.Tensor:
+    """Edges [2, E] (senders, receivers) between particles of the same graph within `radius`.
+
+    positions [N, D]; batch [N] graph index of each particle (graphs never connect to each other).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown neighbour backend {backend!r}; expected one of {BACKENDS}")
+    if positions.ndim != 2:
+        raise ValueError(f"positions must be [N, D], got shape {tuple(positions.shape)}")
+    n = positions.shape[0]
+    if batch is None:
+        batch = torch.zeros(n, dtype=torch.long, device=positions.device)
+    search = {"scipy": _scipy_candidates, "torch_cluster": _torch_cluster_candidates,
+              "cell_list": _cell_list_candidates}[backend]
+    senders, receivers = search(positions.detach(), radius * _SEARCH_SLACK, batch)
+    senders, receivers = _exact_filter(positions.detach(), senders, receivers, radius)
+    if self_edges:
+        loops = torch.arange(n, device=positions.device)
+        senders, receivers = torch.cat([senders, loops]), torch.cat([receivers, loops])
+    return _sorted(senders, receivers, n)
+
+
+def _exact_filter(positions: torch.Tensor, senders: torch.Tensor, receivers: torch.Tensor,
+                  radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    keep = senders != receivers
+    senders, receivers = senders[keep], receivers[keep]
+    pos = positions.to(torch.float64)
+    d2 = (pos.index_select(0, senders) - pos.index_select(0, receivers)).square().sum(dim=1)
+    keep = d2 <= float(radius) ** 2
+    return senders[keep], receivers[keep]
+
+
+def _sorted(senders: torch.Tensor, receivers: torch.Tensor, n: int) -> torch.Tensor:
+    order = torch.argsort(receivers * n + senders)
+    return torch.stack([senders[order], receivers[order]])
+
+
+def _scipy_candidates(positions: torch.Tensor, radius: float,
+                      batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    pos = positions.cpu().numpy().astype(np.float64)
+    graph = batch.cpu().numpy()
+    # Graphs in a batch are contiguous and sorted (as batching builds them); search each separately.
+    boundaries = np.flatnonzero(np.diff(graph)) + 1
+    starts = np.concatenate([[0], boundaries])
+    ends = np.concatenate([boundaries, [len(graph)]])
+    if len(np.unique(graph)) != len(starts):
+        raise ValueError("batch must be sorted: each graph's particles contiguous")
+    pairs = []
+    for start, end in zip(starts, ends, strict=True):
+        tree = cKDTree(pos[start:end])
+        p = tree.query_pairs(radius, output_type="ndarray") + start
+        pairs.append(p)
+    p = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+    i = torch.from_numpy(p[:, 0].astype(np.int64)).to(positions.device)
+    j = torch.from_numpy(p[:, 1].astype(np.int64)).to(positions.device)
+    return torch.cat([i, j]), torch.cat([j, i])  # query_pairs gives i < j once; edges go both ways
+
+
+def _torch_cluster_candidates(positions: torch.Tensor, radius: float,
+                              batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    try:
+        import torch_cluster
+    except ImportError as exc:
+        raise RuntimeError("neighbour backend 'torch_cluster' needs the optional dependency: "
+                           "pip install 'gns-bench[cluster]'") from exc
+    # max_num_neighbors is a cap in torch_cluster; set it to N so no edge is ever dropped.
+    n = positions.shape[0]
+    edge_index = torch_cluster.radius_graph(positions, r=radius, batch=batch, loop=False,
+                                            max_num_neighbors=max(n, 1))
+    return edge_index[0], edge_index[1]
+
+
+def _cell_list_candidates(positions: torch.Tensor, radius: float,
+                          batch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bin particles into cells of side R; candidates are the particles of the 3^D surrounding cells."""
+    n, dim = positions.shape
+    device = positions.device
+    if n == 0:
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        return empty, empty
+    pos = positions.to(torch.float64)
+    cell = torch.floor((pos - pos.min(dim=0).values) / radius).long() + 1  # +1: offsets stay >= 0
+    extent = cell.max(dim=0).values + 2
+
+    def linear_key(c: torch.Tensor) -> torch.Tensor:
+        key = batch.clone()
+        for d in range(dim):
+            key = key * extent[d] + c[:, d]
+        return key
+
+    key = linear_key(cell)
+    order = torch.argsort(key)
+    sorted_key = key[order]
+    senders_all, receivers_all = [], []
+    arange = torch.arange(n, device=device)
+    for offset in itertools.product((-1, 0, 1), repeat=dim):
+        neighbour_key = linear_key(cell + torch.tensor(offset, device=device))
+        start = torch.searchsorted(sorted_key, neighbour_key, side="left")
+        end = torch.searchsorted(sorted_key, neighbour_key, side="right")
+        counts = end - start
+        total = int(counts.sum())
+        if total == 0:
+            continue
+        receivers = torch.repeat_interleave(arange, counts)
+        first = torch.repeat_interleave(start - (torch.cumsum(counts, 0) - counts), counts)
+        senders = order[first + torch.arange(total, device=device)]
+        senders_all.append(senders)
+        receivers_all.append(receivers)
+    if not senders_all:
+        empty = torch.zeros(0, dtype=torch.long, device=device)
+        return empty, empty
+    return torch.cat(senders_all), torch.cat(receivers_all)

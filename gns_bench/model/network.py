@@ -1,0 +1,136 @@
+"""Encode-process-decode graph network (paper Sec. 3.2 and App. A; Battaglia et al. 2018).
+
+  encoder    v0 = eps_v(x_i), e0 = eps_e(r_ij)                         MLP + LayerNorm
+  processor  M interaction-network blocks, each with its own weights (or one shared block):
+               e'_ij = e_ij + phi_e([e_ij, v_sender, v_receiver (, u)])
+               v'_i  = v_i  + phi_v([v_i, sum_{j -> i} e'_ij (, u)])
+               u'    = u    + phi_u([u, mean v', mean e'])              (global-latent ablation only)
+  decoder    y_i = delta_v(v_i^M)                                         MLP, no LayerNorm
+
+The first layer of phi_e is applied as per-node projections gathered per edge,
+W [e, v_s, v_r] = W_e e + (W_s v)[s] + (W_r v)[r], which is the same function as the concatenated
+form with fewer FLOPs (E >> N); the weights are stored as one Linear so both forms share parameters.
+Sum aggregation uses PyTorch Geometric's scatter.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import nn
+from torch_geometric.utils import scatter
+
+
+def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int, *,
+              layer_norm: bool) -> nn.Sequential:
+    """`hidden_layers` ReLU layers of `hidden_size`, a linear output, then LayerNorm if asked."""
+    layers: list[nn.Module] = []
+    size = in_size
+    for _ in range(hidden_layers):
+        layers += [nn.Linear(size, hidden_size), nn.ReLU()]
+        size = hidden_size
+    layers.append(nn.Linear(size, out_size))
+    if layer_norm:
+        layers.append(nn.LayerNorm(out_size))
+    return nn.Sequential(*layers)
+
+
+class InteractionNetwork(nn.Module):
+    """One GN block with residual edge and node updates and sum aggregation (no global, unless asked)."""
+
+    def __init__(self, latent_size: int, hidden_size: int, hidden_layers: int, global_latent: bool):
+        super().__init__()
+        g = latent_size if global_latent else 0
+        self.latent_size = latent_size
+        self.global_latent = global_latent
+        self.edge_mlp = build_mlp(3 * latent_size + g, hidden_size, hidden_layers, latent_size,
+                                  layer_norm=True)
+        self.node_mlp = build_mlp(2 * latent_size + g, hidden_size, hidden_layers, latent_size,
+                                  layer_norm=True)
+        self.global_mlp = (build_mlp(3 * latent_size, hidden_size, hidden_layers, latent_size,
+                                     layer_norm=True) if global_latent else None)
+
+    def edge_update(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
+                    edge_globals: torch.Tensor | None) -> torch.Tensor:
+        """phi_e([e, v_sender, v_receiver (, u)]) with the first layer split per node (see module doc)."""
+        first, rest = self.edge_mlp[0], self.edge_mlp[1:]
+        size = self.latent_size
+        weight = first.weight  # [H, 3L (+L)]
+        per_node = nodes @ torch.cat([weight[:, size:2 * size], weight[:, 2 * size:3 * size]], dim=0).T
+        hidden_size = weight.shape[0]
+        hidden = torch.addmm(first.bias, edges, weight[:, :size].T)
+        hidden = hidden + per_node[:, :hidden_size].index_select(0, edge_index[0])
+        hidden = hidden + per_node[:, hidden_size:].index_select(0, edge_index[1])
+        if edge_globals is not None:
+            hidden = hidden + edge_globals @ weight[:, 3 * size:].T
+        return rest(hidden)
+
+    def forward(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
+                globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        node_globals = edge_globals = None
+        if self.global_latent:
+            node_globals = globals_.index_select(0, node_graph)
+            edge_globals = node_globals.index_select(0, edge_index[1])
+        new_edges = edges + self.edge_update(nodes, edges, edge_index, edge_globals)
+        aggregated = scatter(new_edges, edge_index[1], dim=0, dim_size=nodes.shape[0], reduce="sum")
+        node_inputs = [nodes, aggregated] + ([node_globals] if self.global_latent else [])
+        new_nodes = nodes + self.node_mlp(torch.cat(node_inputs, dim=1))
+        new_globals = globals_
+        if self.global_latent:
+            num_graphs = globals_.shape[0]
+            mean_nodes = scatter(new_nodes, node_graph, dim=0, dim_size=num_graphs, reduce="mean")
+            edge_graph = node_graph.index_select(0, edge_index[1])
+            mean_edges = scatter(new_edges, edge_graph, dim=0, dim_size=num_graphs, reduce="mean")
+            new_globals = globals_ + self.global_mlp(torch.cat([globals_, mean_nodes, mean_edges], dim=1))
+        return new_nodes, new_edges, new_globals
+
+
+class EncodeProcessDecode(nn.Module):
+    def __init__(self, node_in: int, edge_in: int, out_size: int, *, latent_size: int = 128,
+                 hidden_size: int = 128, hidden_layers: int = 2, message_passing_steps: int = 10,
+                 shared_processor: bool = False, global_latent: bool = False, global_in: int = 0,
+                 linear_encoder_decoder: bool = False):
+        super().__init__()
+        if linear_encoder_decoder:
+            self.node_encoder: nn.Module = nn.Linear(node_in, latent_size)
+            self.edge_encoder: nn.Module = nn.Linear(edge_in, latent_size)
+            self.decoder: nn.Module = nn.Linear(latent_size, out_size)
+        else:
+            self.node_encoder = build_mlp(node_in, hidden_size, hidden_layers, latent_size, layer_norm=True)
+            self.edge_encoder = build_mlp(edge_in, hidden_size, hidden_layers, latent_size, layer_norm=True)
+            self.decoder = build_mlp(latent_size, hidden_size, hidden_layers, out_size, layer_norm=False)
+        self.global_latent = global_latent
+        if global_latent:
+            # u0 from the global context when there is one, else a learned constant.
+            self.global_encoder = (build_mlp(global_in, hidden_size, hidden_layers, latent_size,
+                                             layer_norm=True) if global_in else None)
+            self.global_constant = nn.Parameter(torch.zeros(latent_size)) if not global_in else None
+        block = InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent)
+        if shared_processor:
+            self.processor = nn.ModuleList([block])
+            self.schedule = [0] * message_passing_steps
+        else:
+            self.processor = nn.ModuleList(
+                [block] + [copy.deepcopy(block) for _ in range(message_passing_steps - 1)])
+            for layer in self.processor:  # deep copies share initial values: re-initialise each
+                for module in layer.modules():
+                    if hasattr(module, "reset_parameters"):
+                        module.reset_parameters()
+            self.schedule = list(range(message_passing_steps))
+
+    def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor, edge_index: torch.Tensor,
+                node_graph: torch.Tensor | None = None, num_graphs: int = 1,
+                global_features: torch.Tensor | None = None) -> torch.Tensor:
+        nodes = self.node_encoder(node_features)
+        edges = self.edge_encoder(edge_features)
+        globals_ = None
+        if self.global_latent:
+            if self.global_encoder is not None:
+                globals_ = self.global_encoder(global_features)
+            else:
+                globals_ = self.global_constant.expand(num_graphs, -1)
+        for index in self.schedule:
+            nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph)
+        return self.decoder(nodes)

@@ -1,0 +1,123 @@
+"""The learned simulator: features in, normalised acceleration out, semi-implicit Euler to positions.
+
+This is the paper's GNS (Sec. 3, App. A/B.2; REFERENCE.md 'Model'). It holds the dataset's
+normalisation statistics as buffers, so a checkpoint carries everything needed to run it.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from gns_bench.config import ConfigError, ModelConfig
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, NUM_PARTICLE_TYPES, Metadata
+from gns_bench.model import features
+from gns_bench.model.network import EncodeProcessDecode
+from gns_bench.model.neighbours import radius_graph
+
+CONTEXT_STD_FLOOR = 1e-8
+
+
+class LearnedSimulator(nn.Module):
+    def __init__(self, config: ModelConfig, metadata: Metadata, noise_std: float):
+        super().__init__()
+        self.config = config
+        self.dim = metadata.dim
+        self.radius = float(config.connectivity_radius or metadata.default_connectivity_radius)
+        self.use_walls = bool(metadata.walls)
+        # A type embedding only when the dataset has more than one type (an import that does not know
+        # its types gets one, to be safe).
+        self.use_type_embedding = metadata.num_particle_types != 1
+        self.context_size = metadata.context_size
+        self.absolute = config.position_encoding == "absolute"
+
+        def buffer(name: str, values: list[float]) -> None:
+            self.register_buffer(name, torch.tensor(values, dtype=torch.float32))
+
+        sigma2 = noise_std**2
+        buffer("vel_mean", metadata.vel_mean)
+        buffer("vel_std", [(s**2 + sigma2) ** 0.5 for s in metadata.vel_std])
+        buffer("acc_mean", metadata.acc_mean)
+        buffer("acc_std", [(s**2 + sigma2) ** 0.5 for s in metadata.acc_std])
+        buffer("bounds", metadata.bounds)
+        if self.context_size:
+            buffer("context_mean", metadata.context_mean)
+            buffer("context_std", [max(s, CONTEXT_STD_FLOOR) for s in metadata.context_std])
+        if config.gravity_bias:
+            if metadata.gravity is None:
+                raise ConfigError("model.gravity_bias: the dataset's metadata.json has no 'gravity' field")
+            buffer("gravity", metadata.gravity)
+
+        num_velocities = config.input_sequence_length - 1
+        node_in = num_velocities * self.dim
+        node_in += 2 * self.dim if self.use_walls else 0
+        node_in += self.dim if self.absolute else 0
+        node_in += self.context_size
+        if self.use_type_embedding:
+            self.type_embedding = nn.Embedding(NUM_PARTICLE_TYPES, config.particle_type_embedding_size)
+            node_in += config.particle_type_embedding_size
+        edge_in = 2 * self.dim if self.absolute else self.dim + 1
+        self.network = EncodeProcessDecode(
+            node_in, edge_in, self.dim, latent_size=config.latent_size, hidden_size=config.mlp_hidden_size,
+            hidden_layers=config.mlp_hidden_layers, message_passing_steps=config.message_passing_steps,
+            shared_processor=config.shared_processor, global_latent=config.global_latent,
+            global_in=self.context_size, linear_encoder_decoder=config.linear_encoder_decoder)
+
+    @property
+    def normalisation(self) -> features.Normalisation:
+        return features.Normalisation(
+            self.vel_mean, self.vel_std, self.acc_mean, self.acc_std,
+            getattr(self, "context_mean", None), getattr(self, "context_std", None))
+
+    def build_graph(self, position: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        return radius_graph(position, self.radius, batch, backend=self.config.neighbour_backend,
+                            self_edges=self.config.self_edges)
+
+    def forward(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
+                context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalised acceleration [N, D] for a window [N, W, D] of positions.
+
+        batch [N]: graph index per particle (None: one graph); context [B, C]: raw global context per
+        graph; edge_index: precomputed edges for the window's last positions (searched when None).
+        """
+        n = window.shape[0]
+        if batch is None:
+            batch = torch.zeros(n, dtype=torch.long, device=window.device)
+        num_graphs = int(batch[-1]) + 1 if n else 1
+        if edge_index is None:
+            edge_index = self.build_graph(window[:, -1], batch)
+        norm = self.normalisation
+        node_context = global_context = None
+        if self.context_size:
+            if context is None:
+                raise ValueError("this simulator was built for a dataset with a global context; pass context")
+            global_context = features.normalise_context(context, norm)
+            node_context = global_context.index_select(0, batch)
+        x = features.node_features(window, norm, bounds=self.bounds, radius=self.radius, walls=self.use_walls,
+                                   absolute_positions=self.absolute, context=node_context)
+        if self.use_type_embedding:
+            x = torch.cat([x, self.type_embedding(particle_type)], dim=1)
+        e = features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,
+                                   bounds=self.bounds)
+        out = self.network(x, e, edge_index, batch, num_graphs, global_context)
+        if self.config.gravity_bias:  # the network predicts the deviation from free fall
+            out = out + (self.gravity - self.acc_mean) / self.acc_std
+        return out
+
+    def normalise_acceleration(self, acceleration: torch.Tensor) -> torch.Tensor:
+        return (acceleration - self.acc_mean) / self.acc_std
+
+    def denormalise_acceleration(self, normalised: torch.Tensor) -> torch.Tensor:
+        return normalised * self.acc_std + self.acc_mean
+
+    def predict_next_position(self, window: torch.Tensor, particle_type: torch.Tensor,
+                              batch: torch.Tensor | None = None, context: torch.Tensor | None = None,
+                              edge_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Next positions of every particle (callers put kinematic particles back from the data)."""
+        acceleration = self.denormalise_acceleration(self(window, particle_type, batch, context, edge_index))
+        return features.integrate(window, acceleration)
+
+
+def kinematic_mask(particle_type: torch.Tensor) -> torch.Tensor:
+    """True for kinematic (boundary/obstacle) particles: in the graph, never predicted or in the loss."""
+    return particle_type == KINEMATIC_PARTICLE_TYPE

@@ -1,0 +1,119 @@
+"""Train and evaluate as tracked MLflow runs: the library API the CLI and the sweep runner call."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from gns_bench import tracking
+from gns_bench.config import Config, EvalConfig
+from gns_bench.data.format import load_split, read_metadata
+from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
+from gns_bench.evaluate.plots import plot_rollout
+from gns_bench.train.loop import load_simulator, resolve_device, train
+
+DEFAULT_EXPERIMENT = "gns-bench"
+RUN_ID_FILE = "mlflow_run_id"
+
+
+@dataclass
+class RunSummary:
+    run_id: str
+    out_dir: Path
+    checkpoint: Path | None
+    metrics: dict[str, float]
+
+
+def _dataset_tags(dataset_dir: str | Path) -> dict[str, Any]:
+    meta = read_metadata(dataset_dir)
+    return {"dataset": meta.name or Path(dataset_dir).name, "dataset_path": str(Path(dataset_dir).resolve()),
+            "dataset_hash": meta.content_hash or "unknown",
+            "dataset_tier": (meta.generator or {}).get("tier", "")}
+
+
+def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
+                               prefix: str) -> list[Path]:
+    """Rollouts (npz), per-trajectory metrics (csv) and pictures of the best and worst rollouts."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [save_rollouts(evaluation, out_dir / f"{prefix}_rollouts.npz")]
+    table = out_dir / f"{prefix}_per_trajectory.csv"
+    with table.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(evaluation.per_trajectory[0]))
+        writer.writeheader()
+        writer.writerows(evaluation.per_trajectory)
+    paths.append(table)
+    ranked = sorted(range(len(evaluation.per_trajectory)),
+                    key=lambda i: evaluation.per_trajectory[i]["rollout_mse"])
+    for label, index in (("best", ranked[0]), ("worst", ranked[-1])):
+        if evaluation.rollouts[index].predicted.shape[0]:
+            mse = evaluation.per_trajectory[index]["rollout_mse"]
+            paths.append(plot_rollout(evaluation.rollouts[index], out_dir / f"{prefix}_rollout_{label}.png",
+                                      bounds, title=f"{label} trajectory {index}: rollout MSE {mse:.3g}"))
+    return paths
+
+
+def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
+                    split: str) -> None:
+    run.log_metrics({f"{split}/{key}": value for key, value in evaluation.metrics.items()})
+    for path in write_evaluation_artifacts(evaluation, out_dir, bounds, split):
+        run.log_artifact(path, "evaluation")
+
+
+def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
+              experiment: str = DEFAULT_EXPERIMENT, run_name: str | None = None, resume: bool = False,
+              evaluate_after: bool = True, progress: bool = True,
+              extra_params: dict[str, Any] | None = None, extra_tags: dict[str, Any] | None = None
+              ) -> RunSummary:
+    """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    device = str(resolve_device(config.train.device))
+    previous = out_dir / RUN_ID_FILE
+    run_id = previous.read_text().strip() if resume and previous.exists() else None
+    params = {**config.flat(), "dataset_dir": str(dataset_dir), **(extra_params or {})}
+    tags = {**tracking.environment_tags(device), **_dataset_tags(dataset_dir), "kind": "train",
+            **(extra_tags or {})}
+    with tracking.start_run(experiment, run_name or out_dir.name, params=None if run_id else params,
+                            tags=tags, run_id=run_id) as run:
+        previous.write_text(run.run_id + "\n")
+        run.log_dict(config.to_dict(), "config.json")
+        result = train(config, dataset_dir, out_dir, resume=resume, progress=progress,
+                       on_log=lambda step, metrics: run.log_metrics(metrics, step=step))
+        run.log_metrics({"train/steps_per_second": result.steps_per_second,
+                         "train/final_step": result.final_step})
+        run.log_artifact(result.checkpoint, "checkpoint")
+        metrics: dict[str, float] = {}
+        if evaluate_after:
+            simulator, _, meta = load_simulator(result.checkpoint, device)
+            trajectories = load_split(dataset_dir, config.eval.split, meta,
+                                      min_length=config.model.input_sequence_length + 1)
+            evaluation = evaluate(simulator, trajectories, config.eval, device=device, progress=progress)
+            _log_evaluation(run, evaluation, out_dir, meta.bounds, config.eval.split)
+            metrics = evaluation.metrics
+        return RunSummary(run.run_id, out_dir, result.checkpoint, metrics)
+
+
+def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: EvalConfig | None = None, *,
+                 out_dir: str | Path | None = None, experiment: str = DEFAULT_EXPERIMENT,
+                 device: str = "auto", progress: bool = True) -> RunSummary:
+    """Evaluate a checkpoint on a dataset split as its own MLflow run."""
+    torch_device = str(resolve_device(device))
+    simulator, config, meta = load_simulator(checkpoint, torch_device)
+    eval_config = eval_config or config.eval
+    checkpoint = Path(checkpoint)
+    out_dir = Path(out_dir) if out_dir else (checkpoint if checkpoint.is_dir() else checkpoint.parent) / "evaluation"
+    data_meta = read_metadata(dataset_dir)
+    if data_meta.dim != meta.dim:
+        raise ValueError(f"{dataset_dir}: dim {data_meta.dim} does not match the checkpoint's dim {meta.dim}")
+    config.eval = eval_config
+    params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}
+    tags = {**tracking.environment_tags(torch_device), **_dataset_tags(dataset_dir), "kind": "evaluate"}
+    with tracking.start_run(experiment, f"evaluate-{eval_config.split}", params=params, tags=tags) as run:
+        trajectories = load_split(dataset_dir, eval_config.split, data_meta,
+                                  min_length=config.model.input_sequence_length + 1)
+        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress)
+        _log_evaluation(run, evaluation, out_dir, data_meta.bounds, eval_config.split)
+        return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
+

@@ -1,0 +1,125 @@
+"""The one place that talks to MLflow.
+
+Default tracking store: an SQLite file `mlflow.db` in the working directory, artifacts beside it in
+`mlartifacts/`. `MLFLOW_TRACKING_URI` overrides it (a team server, say). A run that raises is ended
+FAILED with its error as a tag; Ctrl-C ends it KILLED: nothing that did not finish looks FINISHED.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+DEFAULT_DB = "mlflow.db"
+DEFAULT_ARTIFACTS = "mlartifacts"
+
+
+def tracking_uri() -> str:
+    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path.cwd() / DEFAULT_DB}"
+
+
+def _mlflow():  # imported lazily: mlflow takes seconds to import
+    import mlflow
+
+    logging.getLogger("mlflow").setLevel(logging.WARNING)
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    mlflow.set_tracking_uri(tracking_uri())
+    return mlflow
+
+
+def git_sha() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        sha = out.stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=5, cwd=Path(__file__).resolve().parent).stdout.strip()
+        return (sha + ("-dirty" if dirty else "")) if sha else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def environment_tags(device: str) -> dict[str, str]:
+    import torch
+
+    return {"git_sha": git_sha(), "device": device, "torch_version": torch.__version__,
+            "python_version": platform.python_version(), "host_cpu": platform.processor() or platform.machine()}
+
+
+def experiment_id(name: str) -> str:
+    mlflow = _mlflow()
+    experiment = mlflow.get_experiment_by_name(name)
+    if experiment is not None:
+        return experiment.experiment_id
+    location = None
+    if tracking_uri().startswith("sqlite:///") and "MLFLOW_TRACKING_URI" not in os.environ:
+        location = (Path.cwd() / DEFAULT_ARTIFACTS / name).as_uri()
+    return mlflow.create_experiment(name, artifact_location=location)
+
+
+class Run:
+    """A thin handle over an active MLflow run."""
+
+    def __init__(self, mlflow: Any, run: Any):
+        self._mlflow, self.run = mlflow, run
+
+    @property
+    def run_id(self) -> str:
+        return self.run.info.run_id
+
+    @property
+    def artifact_uri(self) -> str:
+        return self.run.info.artifact_uri
+
+    def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
+        clean = {k: float(v) for k, v in metrics.items() if v is not None}
+        if clean:
+            self._mlflow.log_metrics(clean, step=step)
+
+    def log_params(self, params: dict[str, Any]) -> None:
+        items = [(k, "None" if v is None else str(v)) for k, v in params.items()]
+        for start in range(0, len(items), 90):  # MLflow caps a batch at 100 params
+            self._mlflow.log_params(dict(items[start:start + 90]))
+
+    def set_tags(self, tags: dict[str, Any]) -> None:
+        self._mlflow.set_tags({k: str(v) for k, v in tags.items()})
+
+    def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
+        self._mlflow.log_artifact(str(path), artifact_path=artifact_path)
+
+    def log_dict(self, data: dict[str, Any], name: str) -> None:
+        self._mlflow.log_dict(data, name)
+
+
+@contextmanager
+def start_run(experiment: str, run_name: str, *, params: dict[str, Any] | None = None,
+              tags: dict[str, Any] | None = None, run_id: str | None = None) -> Iterator[Run]:
+    """Start a run (or continue `run_id`, e.g. a resumed training) and end it with the right status."""
+    mlflow = _mlflow()
+    if run_id is not None:
+        active = mlflow.start_run(run_id=run_id)
+    else:
+        active = mlflow.start_run(experiment_id=experiment_id(experiment), run_name=run_name)
+    handle = Run(mlflow, active)
+    try:
+        if params:
+            handle.log_params(params)
+        if tags:
+            handle.set_tags(tags)
+        yield handle
+    except KeyboardInterrupt:
+        mlflow.set_tag("error", "interrupted (KeyboardInterrupt)")
+        mlflow.end_run(status="KILLED")
+        raise
+    except BaseException as exc:
+        mlflow.set_tag("error", f"{type(exc).__name__}: {exc}"[:5000])
+        mlflow.end_run(status="FAILED")
+        raise
+    else:
+        mlflow.end_run(status="FINISHED")

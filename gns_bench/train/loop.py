@@ -1,0 +1,165 @@
+"""The one training loop (paper Sec. 4.3, App. B.3), whatever launches it.
+
+One-step training on noise-corrupted windows: Adam, learning rate decaying exponentially from 1e-4
+towards 1e-6, batches of disjoint graphs. Every step's batch and noise come from (seed, step), and a
+checkpoint holds model, optimiser and step, so an interrupted run resumes exactly: the loss curve
+continues as if it had never stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from gns_bench.config import Config, TrainConfig, config_from_dict
+from gns_bench.data.format import Metadata, load_split, read_metadata
+from gns_bench.data.windows import GraphBatch, WindowSampler
+from gns_bench.model.features import acceleration_from_next_position
+from gns_bench.model.noise import noisy_training_pair
+from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
+from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
+
+# Train settings that may change between an interrupted run and its resumption.
+RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads"}
+
+
+@dataclass
+class TrainResult:
+    checkpoint: Path
+    losses: list[float]  # one per step run by this call
+    start_step: int
+    final_step: int
+    steps_per_second: float
+
+
+def learning_rate(step: int, config: TrainConfig) -> float:
+    decay = 0.1 ** (step / config.learning_rate_decay_steps)
+    return (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def training_loss(simulator: LearnedSimulator, batch: GraphBatch, noise_std: float, position_correction: float,
+                  generator: torch.Generator | None = None) -> torch.Tensor:
+    """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles."""
+    moving = ~kinematic_mask(batch.particle_type)
+    window, target_next = noisy_training_pair(batch.window, batch.target, noise_std, position_correction,
+                                              generator, mask=moving)
+    target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
+    predicted = simulator(window, batch.particle_type, batch.batch, batch.context)
+    per_particle = (predicted - target).square().sum(dim=-1)
+    return (per_particle * moving).sum() / moving.sum().clamp(min=1)
+
+
+def build_simulator(config: Config, metadata: Metadata) -> LearnedSimulator:
+    return LearnedSimulator(config.model, metadata, config.train.noise_std)
+
+
+def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path) -> None:
+    if saved["metadata"].get("content_hash") != metadata.content_hash:
+        raise ValueError(f"{path}: checkpoint was trained on dataset {saved['metadata'].get('content_hash')}, "
+                         f"not {metadata.content_hash}")
+    old = config_from_dict(saved["config"], str(path))
+    if old.model != config.model:
+        raise ValueError(f"{path}: model config differs from the checkpoint's; cannot resume")
+    changed = {f.name for f in dataclasses.fields(TrainConfig)
+               if getattr(old.train, f.name) != getattr(config.train, f.name)} - RESUMABLE_CHANGES
+    if changed:
+        raise ValueError(f"{path}: train settings {sorted(changed)} differ from the checkpoint's; cannot resume")
+
+
+def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
+          on_log: Callable[[int, dict[str, float]], None] | None = None,
+          progress: bool = True) -> TrainResult:
+    """Train to `config.train.steps`, checkpointing into `out_dir`. `on_log(step, metrics)` gets the loss."""
+    tc = config.train
+    if tc.num_threads:
+        torch.set_num_threads(tc.num_threads)
+    device = resolve_device(tc.device)
+    metadata = read_metadata(dataset_dir)
+    trajectories = load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
+    sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed)
+
+    torch.manual_seed(tc.seed)
+    simulator = build_simulator(config, metadata).to(device)
+    optimiser = torch.optim.Adam(simulator.parameters(), lr=learning_rate(0, tc))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint_path = out_dir / CHECKPOINT_NAME
+    step = 0
+    if resume and checkpoint_path.exists():
+        saved = load_checkpoint(checkpoint_path, device)
+        _check_resumable(saved, config, metadata, checkpoint_path)
+        simulator.load_state_dict(saved["model"])
+        optimiser.load_state_dict(saved["optimizer"])
+        step = int(saved["step"])
+    elif checkpoint_path.exists():
+        raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
+    (out_dir / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+
+    def checkpoint(at_step: int) -> None:
+        save_checkpoint(checkpoint_path, {
+            "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
+            "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir)})
+
+    start_step, losses, window_losses = step, [], []
+    bar = tqdm(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
+               desc="train")
+    started = time.perf_counter()
+    simulator.train()
+    try:
+        while step < tc.steps:
+            lr = learning_rate(step, tc)
+            for group in optimiser.param_groups:
+                group["lr"] = lr
+            batch = sampler.batch(step, tc.batch_size).to(device)
+            loss = training_loss(simulator, batch, tc.noise_std, tc.position_correction,
+                                 sampler.noise_generator(step))
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+            step += 1
+            value = float(loss.detach())
+            losses.append(value)
+            window_losses.append(value)
+            bar.update(1)
+            if step % tc.log_every == 0 or step == tc.steps:
+                mean_loss = sum(window_losses) / len(window_losses)
+                window_losses = []
+                bar.set_postfix(loss=f"{mean_loss:.3g}", lr=f"{lr:.2g}")
+                if on_log:
+                    on_log(step, {"train_loss": mean_loss, "learning_rate": lr})
+            if step % tc.checkpoint_every == 0:
+                checkpoint(step)
+    except KeyboardInterrupt:
+        checkpoint(step)  # every completed step is kept; resume with --resume
+        raise
+    finally:
+        bar.close()
+    checkpoint(step)
+    elapsed = time.perf_counter() - started
+    rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
+    return TrainResult(checkpoint_path, losses, start_step, step, rate)
+
+
+def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
+                   ) -> tuple[LearnedSimulator, Config, Metadata]:
+    """Rebuild a trained simulator from its checkpoint (config and normalisation travel with it)."""
+    saved = load_checkpoint(checkpoint, device)
+    config = config_from_dict(saved["config"], str(checkpoint))
+    metadata = Metadata.from_json(saved["metadata"], f"{checkpoint} (metadata)")
+    simulator = build_simulator(config, metadata).to(device)
+    simulator.load_state_dict(saved["model"])
+    simulator.eval()
+    return simulator, config, metadata
