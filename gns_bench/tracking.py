@@ -1,8 +1,9 @@
 """The one place that talks to MLflow.
 
-Default tracking store: an SQLite file `mlflow.db` in the working directory, artifacts beside it in
-`mlartifacts/`. `MLFLOW_TRACKING_URI` overrides it (a team server, say). A run that raises is ended
-FAILED with its error as a tag; Ctrl-C ends it KILLED: nothing that did not finish looks FINISHED.
+Default tracking store: an SQLite file `mlflow.db` in the working directory; a local SQLite store keeps
+its artifacts beside the database in `mlartifacts/<experiment>/`. `MLFLOW_TRACKING_URI` overrides it
+(a team server, say). A run that raises is ended FAILED with its error as a tag; Ctrl-C ends it
+KILLED: nothing that did not finish looks FINISHED.
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ def experiment_id(name: str) -> str:
     if experiment is not None:
         return experiment.experiment_id
     location = None
-    if tracking_uri().startswith("sqlite:///") and "MLFLOW_TRACKING_URI" not in os.environ:
-        location = (Path.cwd() / DEFAULT_ARTIFACTS / name).as_uri()
+    uri = tracking_uri()
+    if uri.startswith("sqlite:///"):  # a local store: keep its artifacts beside the database file
+        location = (Path(uri.removeprefix("sqlite:///")).resolve().parent / DEFAULT_ARTIFACTS / name).as_uri()
     return mlflow.create_experiment(name, artifact_location=location)
 
 

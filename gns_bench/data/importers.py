@@ -56,13 +56,10 @@ def _finish(writer: DatasetWriter, raw_meta: dict[str, Any], src: Path, name: st
 
 
 def _tfrecord_trajectories(path: Path, dim: int) -> Iterator[Trajectory]:
-    from tfrecord.reader import tfrecord_loader
+    from tfrecord.reader import sequence_loader
 
-    context_description = {"particle_type": "byte"}
-    sequence_description = {"position": "byte", "step_context": "byte"}
     try:
-        records = tfrecord_loader(str(path), None, context_description,
-                                  sequence_description=sequence_description)
+        records = sequence_loader(str(path), None)  # no descriptions: every feature present is returned
         for index, (context, sequence) in enumerate(records):
             key = f"{index:05d}"
             if "particle_type" not in context:

@@ -15,8 +15,6 @@ Sum aggregation uses PyTorch Geometric's scatter.
 
 from __future__ import annotations
 
-import copy
-
 import torch
 from torch import nn
 from torch_geometric.utils import scatter
@@ -39,7 +37,8 @@ def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int,
 class InteractionNetwork(nn.Module):
     """One GN block with residual edge and node updates and sum aggregation (no global, unless asked)."""
 
-    def __init__(self, latent_size: int, hidden_size: int, hidden_layers: int, global_latent: bool):
+    def __init__(self, latent_size: int, hidden_size: int, hidden_layers: int, global_latent: bool,
+                 updates_globals: bool = True):
         super().__init__()
         g = latent_size if global_latent else 0
         self.latent_size = latent_size
@@ -49,7 +48,7 @@ class InteractionNetwork(nn.Module):
         self.node_mlp = build_mlp(2 * latent_size + g, hidden_size, hidden_layers, latent_size,
                                   layer_norm=True)
         self.global_mlp = (build_mlp(3 * latent_size, hidden_size, hidden_layers, latent_size,
-                                     layer_norm=True) if global_latent else None)
+                                     layer_norm=True) if global_latent and updates_globals else None)
 
     def edge_update(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
                     edge_globals: torch.Tensor | None) -> torch.Tensor:
@@ -67,8 +66,8 @@ class InteractionNetwork(nn.Module):
         return rest(hidden)
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
-                globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+                globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None,
+                update_globals: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         node_globals = edge_globals = None
         if self.global_latent:
             node_globals = globals_.index_select(0, node_graph)
@@ -78,7 +77,7 @@ class InteractionNetwork(nn.Module):
         node_inputs = [nodes, aggregated] + ([node_globals] if self.global_latent else [])
         new_nodes = nodes + self.node_mlp(torch.cat(node_inputs, dim=1))
         new_globals = globals_
-        if self.global_latent:
+        if self.global_mlp is not None and update_globals:
             num_graphs = globals_.shape[0]
             mean_nodes = scatter(new_nodes, node_graph, dim=0, dim_size=num_graphs, reduce="mean")
             edge_graph = node_graph.index_select(0, edge_index[1])
@@ -107,23 +106,31 @@ class EncodeProcessDecode(nn.Module):
             self.global_encoder = (build_mlp(global_in, hidden_size, hidden_layers, latent_size,
                                              layer_norm=True) if global_in else None)
             self.global_constant = nn.Parameter(torch.zeros(latent_size)) if not global_in else None
-        block = InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent)
-        if shared_processor:
-            self.processor = nn.ModuleList([block])
+        if message_passing_steps == 0:  # M = 0: a per-particle MLP, edges play no part
+            self.processor = nn.ModuleList()
+            self.schedule = []
+        elif shared_processor:
+            self.processor = nn.ModuleList(
+                [InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent)])
             self.schedule = [0] * message_passing_steps
         else:
+            # The last block's global update would feed nothing (the decoder reads nodes): not built.
             self.processor = nn.ModuleList(
-                [block] + [copy.deepcopy(block) for _ in range(message_passing_steps - 1)])
-            for layer in self.processor:  # deep copies share initial values: re-initialise each
-                for module in layer.modules():
-                    if hasattr(module, "reset_parameters"):
-                        module.reset_parameters()
+                InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent,
+                                   updates_globals=step < message_passing_steps - 1)
+                for step in range(message_passing_steps))
             self.schedule = list(range(message_passing_steps))
 
-    def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor, edge_index: torch.Tensor,
+    @property
+    def uses_edges(self) -> bool:
+        return bool(self.schedule)
+
+    def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor | None, edge_index: torch.Tensor,
                 node_graph: torch.Tensor | None = None, num_graphs: int = 1,
                 global_features: torch.Tensor | None = None) -> torch.Tensor:
         nodes = self.node_encoder(node_features)
+        if not self.schedule:
+            return self.decoder(nodes)
         edges = self.edge_encoder(edge_features)
         globals_ = None
         if self.global_latent:
@@ -131,6 +138,7 @@ class EncodeProcessDecode(nn.Module):
                 globals_ = self.global_encoder(global_features)
             else:
                 globals_ = self.global_constant.expand(num_graphs, -1)
-        for index in self.schedule:
-            nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph)
+        for step, index in enumerate(self.schedule):
+            nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph,
+                                                           update_globals=step < len(self.schedule) - 1)
         return self.decoder(nodes)

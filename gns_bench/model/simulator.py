@@ -12,8 +12,8 @@ from torch import nn
 from gns_bench.config import ConfigError, ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, NUM_PARTICLE_TYPES, Metadata
 from gns_bench.model import features
-from gns_bench.model.network import EncodeProcessDecode
 from gns_bench.model.neighbours import radius_graph
+from gns_bench.model.network import EncodeProcessDecode
 
 CONTEXT_STD_FLOOR = 1e-8
 
@@ -84,7 +84,8 @@ class LearnedSimulator(nn.Module):
         if batch is None:
             batch = torch.zeros(n, dtype=torch.long, device=window.device)
         num_graphs = int(batch[-1]) + 1 if n else 1
-        if edge_index is None:
+        uses_edges = self.network.uses_edges
+        if edge_index is None and uses_edges:
             edge_index = self.build_graph(window[:, -1], batch)
         norm = self.normalisation
         node_context = global_context = None
@@ -97,8 +98,8 @@ class LearnedSimulator(nn.Module):
                                    absolute_positions=self.absolute, context=node_context)
         if self.use_type_embedding:
             x = torch.cat([x, self.type_embedding(particle_type)], dim=1)
-        e = features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,
-                                   bounds=self.bounds)
+        e = (features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,
+                                    bounds=self.bounds) if uses_edges else None)
         out = self.network(x, e, edge_index, batch, num_graphs, global_context)
         if self.config.gravity_bias:  # the network predicts the deviation from free fall
             out = out + (self.gravity - self.acc_mean) / self.acc_std

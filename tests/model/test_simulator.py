@@ -1,0 +1,168 @@
+"""The learned simulator: features, invariances, integration, noise, and every ablation switch."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from gns_bench.config import ModelConfig
+from gns_bench.data.format import Metadata
+from gns_bench.model.features import acceleration_from_next_position, integrate
+from gns_bench.model.network import InteractionNetwork
+from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
+from gns_bench.model.simulator import LearnedSimulator
+
+SMALL = dict(latent_size=32, mlp_hidden_size=32, message_passing_steps=3)
+
+
+def metadata(walls: bool, types: int = 2, context: int = 0, gravity: bool = False) -> Metadata:
+    meta = Metadata(bounds=[[0.0, 1.0], [0.0, 1.0]], sequence_length=10, default_connectivity_radius=0.2, dim=2,
+                    dt=1.0, vel_mean=[0.0, -1e-3], vel_std=[1e-2, 1e-2], acc_mean=[0.0, -1e-4],
+                    acc_std=[1e-3, 1e-3], particle_types=dict(list({"water": 5, "kinematic": 3}.items())[:types]),
+                    walls=walls, gravity=[0.0, -2e-4] if gravity else None)
+    if context:
+        meta.context_mean, meta.context_std = [0.5] * context, [0.1] * context
+    return meta
+
+
+def window(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    start = torch.rand(n, 1, 2, generator=g) * 0.5 + 0.25
+    velocity = torch.randn(n, 1, 2, generator=g) * 0.01
+    steps = torch.arange(6, dtype=torch.float32)[None, :, None]
+    types = torch.where(torch.arange(n) < n - 5, 5, 3)
+    return start + steps * velocity, types
+
+
+@pytest.mark.parametrize("encoding, invariant", [("relative", True), ("absolute", False)])
+def test_translation_invariance(encoding: str, invariant: bool) -> None:
+    torch.manual_seed(0)
+    sim = LearnedSimulator(ModelConfig(**SMALL, position_encoding=encoding), metadata(walls=False), 3e-4)
+    w, types = window()
+    shift = torch.tensor([0.13, -0.07])
+    with torch.no_grad():
+        a = sim(w, types)
+        b = sim(w + shift, types)
+    assert a.abs().mean() > 1e-3
+    if invariant:
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    else:
+        assert (a - b).abs().max() > 1e-2
+
+
+def test_integration_round_trip() -> None:
+    w, _ = window()
+    true_next = w[:, -1] + torch.randn(w.shape[0], 2) * 1e-3
+    acceleration = acceleration_from_next_position(w, true_next)
+    torch.testing.assert_close(integrate(w, acceleration), true_next, rtol=0, atol=1e-7)
+    # semi-implicit Euler: v' = v + a, p' = p + v'
+    v = w[:, -1] - w[:, -2]
+    torch.testing.assert_close(integrate(w, acceleration), w[:, -1] + (v + acceleration))
+
+
+def test_random_walk_noise_statistics() -> None:
+    g = torch.Generator().manual_seed(0)
+    sigma = 3e-4
+    noise = random_walk_position_noise((200_000, 6, 2), sigma, g)
+    assert torch.all(noise[:, 0] == 0), "the first input position gets no noise"
+    velocity_noise = noise[:, 1:] - noise[:, :-1]
+    last_std = float(velocity_noise[:, -1].std())
+    assert abs(last_std / sigma - 1) < 0.05
+    first_std = float(velocity_noise[:, 0].std())
+    assert abs(first_std / (sigma / 5**0.5) - 1) < 0.05  # a random walk: std grows as sqrt(step)
+
+
+def test_noise_masks_kinematic_particles() -> None:
+    w, types = window()
+    noisy, target = noisy_training_pair(w, w[:, -1], 1e-2, 0.0, torch.Generator().manual_seed(1),
+                                        mask=types != 3)
+    kinematic = types == 3
+    assert torch.equal(noisy[kinematic], w[kinematic]) and torch.equal(target[kinematic], w[kinematic, -1])
+    assert not torch.equal(noisy[~kinematic], w[~kinematic])
+
+
+@pytest.mark.parametrize("correction", [0.0, 1.0, 0.5])
+def test_corrected_targets(correction: float) -> None:
+    """Integrating the corrected target from the noisy window lands on p_{t+1} + (1 - alpha) n_t:
+    alpha = 0 gives the clean next velocity, alpha = 1 the clean next position."""
+    g = torch.Generator().manual_seed(2)
+    w, _ = window(seed=3)
+    true_next = w[:, -1] + (w[:, -1] - w[:, -2]) + 1e-4
+    noisy, target = noisy_training_pair(w, true_next, 3e-4, correction, g)
+    reached = integrate(noisy, acceleration_from_next_position(noisy, target))
+    last_noise = noisy[:, -1] - w[:, -1]
+    torch.testing.assert_close(reached, true_next + (1 - correction) * last_noise, rtol=0, atol=1e-7)
+    if correction == 0.0:  # the corrected velocity equals the true next velocity
+        torch.testing.assert_close(reached - noisy[:, -1], true_next - w[:, -1], rtol=0, atol=1e-7)
+
+
+def test_split_edge_layer_equals_concatenation() -> None:
+    torch.manual_seed(0)
+    block = InteractionNetwork(16, 24, 2, global_latent=False)
+    nodes, edges = torch.randn(30, 16), torch.randn(100, 16)
+    edge_index = torch.randint(0, 30, (2, 100))
+    concatenated = block.edge_mlp(torch.cat([edges, nodes[edge_index[0]], nodes[edge_index[1]]], dim=1))
+    torch.testing.assert_close(block.edge_update(nodes, edges, edge_index, None), concatenated,
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_feature_sizes_follow_the_scene() -> None:
+    """No wall features without walls, no type embedding with one type, context only with context."""
+    base = LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True), 0.0)
+    first = base.network.node_encoder[0].in_features
+    assert first == 5 * 2 + 4 + 16
+    assert LearnedSimulator(ModelConfig(**SMALL), metadata(walls=False, types=1), 0.0
+                            ).network.node_encoder[0].in_features == 10
+    assert LearnedSimulator(ModelConfig(**SMALL), metadata(walls=False, types=1, context=1), 0.0
+                            ).network.node_encoder[0].in_features == 11
+    assert not hasattr(LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True, types=1), 0.0),
+                       "type_embedding")
+
+
+def test_normalisation_adds_noise_in_quadrature() -> None:
+    sim = LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True), 3e-4)
+    torch.testing.assert_close(sim.vel_std, torch.tensor([(1e-4 + 9e-8) ** 0.5] * 2))
+    torch.testing.assert_close(sim.acc_std, torch.tensor([(1e-6 + 9e-8) ** 0.5] * 2))
+
+
+ABLATIONS = [
+    {"message_passing_steps": 0}, {"message_passing_steps": 1}, {"shared_processor": True},
+    {"position_encoding": "absolute"}, {"mlp_hidden_layers": 1}, {"mlp_hidden_layers": 3}, {"latent_size": 16},
+    {"self_edges": True}, {"global_latent": True}, {"gravity_bias": True}, {"linear_encoder_decoder": True},
+    {"connectivity_radius": 0.1},
+]
+
+
+@pytest.mark.parametrize("change", ABLATIONS, ids=lambda c: "-".join(f"{k}={v}" for k, v in c.items()))
+def test_every_ablation_switch_builds_and_runs(change: dict) -> None:
+    torch.manual_seed(0)
+    config = dataclasses.replace(ModelConfig(**SMALL), **change)
+    sim = LearnedSimulator(config, metadata(walls=True, context=1, gravity=True), 3e-4)
+    w, types = window()
+    out = sim(w, types, context=torch.tensor([[0.4]]))
+    assert out.shape == (40, 2) and torch.isfinite(out).all()
+    out.sum().backward()
+    unused = {"network.edge_encoder"} if config.message_passing_steps == 0 else set()
+    for name, p in sim.named_parameters():
+        if not any(name.startswith(u) for u in unused):
+            assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+def test_unshared_blocks_have_their_own_weights() -> None:
+    torch.manual_seed(0)
+    unshared = LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True), 0.0)
+    shared = LearnedSimulator(dataclasses.replace(ModelConfig(**SMALL), shared_processor=True), metadata(True), 0.0)
+    a, b = unshared.network.processor[0], unshared.network.processor[1]
+    assert not torch.equal(a.edge_mlp[0].weight, b.edge_mlp[0].weight)
+    assert len(shared.network.processor) == 1 and len(unshared.network.processor) == 3
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert count(unshared) > count(shared)
+
+
+def test_gravity_bias_needs_gravity() -> None:
+    from gns_bench.config import ConfigError
+
+    with pytest.raises(ConfigError, match="gravity"):
+        LearnedSimulator(dataclasses.replace(ModelConfig(**SMALL), gravity_bias=True), metadata(True), 0.0)

@@ -1,0 +1,81 @@
+"""The CLI end to end on the tiny domain, tracked in MLflow, and its error handling."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mlflow
+import pytest
+from mlflow.tracking import MlflowClient
+
+from gns_bench import tracking
+from gns_bench.cli import COMMANDS, build_parser, main
+
+TRAIN = ["model.message_passing_steps=1", "model.latent_size=16", "model.mlp_hidden_size=16",
+         "train.steps=20", "train.log_every=5", "eval.max_trajectories=1"]
+
+
+def client() -> MlflowClient:
+    return MlflowClient(tracking_uri=tracking.tracking_uri())
+
+
+def test_every_subcommand_has_help(capsys: pytest.CaptureFixture) -> None:
+    for command in COMMANDS:
+        with pytest.raises(SystemExit) as info:
+            build_parser().parse_args([command, "--help"])
+        assert info.value.code == 0
+        assert command in capsys.readouterr().out
+
+
+def test_train_evaluate_rollout_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert main(["train", str(tiny_dataset), *TRAIN, "--out", str(out), "--experiment", "cli-test"]) == 0
+    run_id = (out / "mlflow_run_id").read_text().strip()
+    run = client().get_run(run_id)
+    assert run.info.status == "FINISHED"
+    assert run.data.params["model.message_passing_steps"] == "1"
+    assert run.data.params["train.noise_std"] == "0.0003"
+    assert run.data.tags["dataset_hash"] and run.data.tags["torch_version"] and run.data.tags["git_sha"]
+    assert "test/rollout_mse" in run.data.metrics and "test/one_step_mse" in run.data.metrics
+    history = client().get_metric_history(run_id, "train_loss")
+    assert [m.step for m in history] == [5, 10, 15, 20]
+    artifacts = {a.path for a in client().list_artifacts(run_id)}
+    assert {"checkpoint", "evaluation", "config.json"} <= artifacts
+    evaluation = {a.path for a in client().list_artifacts(run_id, "evaluation")}
+    assert "evaluation/test_rollouts.npz" in evaluation and "evaluation/test_rollout_best.png" in evaluation
+
+    assert main(["evaluate", str(out), str(tiny_dataset), "--split", "valid", "--experiment", "cli-test"]) == 0
+    runs = mlflow.search_runs(experiment_names=["cli-test"], filter_string="tags.kind = 'evaluate'",
+                              output_format="list")
+    assert len(runs) == 1 and "valid/rollout_mse" in runs[0].data.metrics
+
+    stem = tmp_path / "roll"
+    assert main(["rollout", str(out / "checkpoint.pt"), str(tiny_dataset), "--steps", "10", "--out", str(stem)]) == 0
+    assert Path(f"{stem}.npz").stat().st_size > 0 and Path(f"{stem}.png").stat().st_size > 1000
+
+
+def test_resume_continues_the_same_mlflow_run(tiny_dataset: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    base = [str(tiny_dataset), *TRAIN[:3], "train.log_every=5", "--out", str(out), "--experiment", "resume",
+            "--no-eval"]
+    assert main(["train", *base, "train.steps=10"]) == 0
+    first = (out / "mlflow_run_id").read_text()
+    assert main(["train", *base, "train.steps=20", "--resume"]) == 0
+    assert (out / "mlflow_run_id").read_text() == first
+    history = client().get_metric_history(first.strip(), "train_loss")
+    assert [m.step for m in history] == [5, 10, 15, 20]
+
+
+def test_failing_run_is_marked_failed(tmp_path: Path) -> None:
+    with pytest.raises(RuntimeError):
+        with tracking.start_run("fail-test", "boom") as run:
+            raise RuntimeError("boom")
+    failed = client().get_run(run.run_id)
+    assert failed.info.status == "FAILED" and "boom" in failed.data.tags["error"]
+
+
+def test_bad_dataset_gives_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["train", str(tmp_path / "nowhere"), "train.steps=1"]) == 2
+    assert "nowhere/metadata.json: no such file" in capsys.readouterr().err
+    assert main(["train", str(tmp_path), "model.latent_size=0"]) == 2
+    assert "model.latent_size: must be > 0" in capsys.readouterr().err

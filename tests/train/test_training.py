@@ -1,0 +1,55 @@
+"""Training: it learns the tiny domain, and an interrupted run resumes on the same loss curve."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gns_bench.config import load_config
+from gns_bench.data.format import load_split
+from gns_bench.evaluate.evaluate import evaluate
+from gns_bench.train.loop import learning_rate, load_simulator, train
+
+QUICK = ["model.message_passing_steps=2", "model.latent_size=64", "model.mlp_hidden_size=64",
+         "train.batch_size=8", "train.learning_rate=2e-3", "train.learning_rate_decay_steps=2000",
+         "train.noise_std=1e-5", "train.log_every=50"]
+
+
+def test_learning_rate_schedule() -> None:
+    config = load_config().train
+    assert learning_rate(0, config) == pytest.approx(1e-4)
+    assert learning_rate(5_000_000, config) == pytest.approx((1e-4 - 1e-6) * 0.1 + 1e-6)
+    assert learning_rate(10**9, config) == pytest.approx(1e-6)
+
+
+def test_training_learns_and_beats_constant_velocity(tiny_dataset: Path, tmp_path: Path) -> None:
+    config = load_config(None, QUICK + ["train.steps=1200"])
+    result = train(config, tiny_dataset, tmp_path / "run", progress=False)
+    first, last = np.mean(result.losses[:20]), np.mean(result.losses[-100:])
+    assert last < first / 10, f"training loss fell only from {first:.3g} to {last:.3g}"
+    simulator, config, _ = load_simulator(result.checkpoint)
+    evaluation = evaluate(simulator, load_split(tiny_dataset, "test"), config.eval, progress=False)
+    m = evaluation.metrics
+    assert m["rollout_mse"] < 0.1 * m["baseline_cv_rollout_mse"], m
+    assert m["one_step_mse"] < m["rollout_mse"]
+
+
+def test_interrupt_and_resume_continues_the_same_loss_curve(tiny_dataset: Path, tmp_path: Path) -> None:
+    config = load_config(None, QUICK + ["train.steps=30", "train.checkpoint_every=7"])
+    straight = train(config, tiny_dataset, tmp_path / "straight", progress=False)
+    first_half = load_config(None, QUICK + ["train.steps=13", "train.checkpoint_every=7"])
+    part = train(first_half, tiny_dataset, tmp_path / "resumed", progress=False)
+    rest = train(config, tiny_dataset, tmp_path / "resumed", resume=True, progress=False)
+    assert rest.start_step == 13 and rest.final_step == 30
+    assert part.losses + rest.losses == straight.losses  # bit for bit
+
+
+def test_resume_refuses_a_different_model(tiny_dataset: Path, tmp_path: Path) -> None:
+    train(load_config(None, QUICK + ["train.steps=2"]), tiny_dataset, tmp_path / "run", progress=False)
+    with pytest.raises(FileExistsError, match="resume"):
+        train(load_config(None, QUICK + ["train.steps=4"]), tiny_dataset, tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match="model config differs"):
+        train(load_config(None, QUICK + ["train.steps=4", "model.latent_size=32"]), tiny_dataset,
+              tmp_path / "run", resume=True, progress=False)
