@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -66,8 +67,14 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
               evaluate_after: bool = True, progress: bool = True,
               extra_params: dict[str, Any] | None = None, extra_tags: dict[str, Any] | None = None
               ) -> RunSummary:
-    """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`."""
+    """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`.
+
+    Under torchrun only rank 0 tracks and evaluates; the other ranks just train.
+    """
     out_dir = Path(out_dir)
+    if int(os.environ.get("RANK", "0")) != 0:
+        train(config, dataset_dir, out_dir, resume=resume, progress=False)
+        return RunSummary("", out_dir, None, {})
     out_dir.mkdir(parents=True, exist_ok=True)
     device = str(resolve_device(config.train.device))
     previous = out_dir / RUN_ID_FILE

@@ -28,16 +28,15 @@ def random_walk_position_noise(window_shape: tuple[int, int, int], noise_std: fl
     return position_noise
 
 
-def noisy_training_pair(window: torch.Tensor, next_position: torch.Tensor, noise_std: float,
-                        position_correction: float = 0.0, generator: torch.Generator | None = None,
-                        mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Corrupt an input window and shift its target accordingly (paper Sec. 4.3, App. C.2).
+def noisy_training_pair(window: torch.Tensor, next_position: torch.Tensor, position_noise: torch.Tensor,
+                        position_correction: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corrupt an input window with `position_noise` [N, W, D] and shift its target accordingly
+    (paper Sec. 4.3, App. C.2). Returns (noisy window, target next position).
 
-    Returns (noisy window, target next position). With `position_correction` alpha, the target is
-    p_{t+1} + (1 - alpha) n_t, n_t being the noise on the last input position: alpha = 0 (the paper's
-    default) asks the model to undo the velocity noise only, so the corrected velocity equals the true
-    next velocity; alpha = 1 asks it to also undo the position noise, landing on the clean p_{t+1}.
+    With `position_correction` alpha the target is p_{t+1} + (1 - alpha) n_t, n_t being the noise on the
+    last input position: alpha = 0 (the paper's default) asks the model to undo the velocity noise only,
+    so the corrected velocity equals the true next velocity; alpha = 1 asks it to also undo the position
+    noise, landing on the clean p_{t+1}.
     """
-    noise = random_walk_position_noise(tuple(window.shape), noise_std, generator, mask, window.device)
-    target = next_position + (1.0 - position_correction) * noise[:, -1]
-    return window + noise, target
+    target = next_position + (1.0 - position_correction) * position_noise[:, -1]
+    return window + position_noise, target

@@ -19,11 +19,12 @@ import torch
 from tqdm import tqdm
 
 from gns_bench.config import Config, TrainConfig, config_from_dict
-from gns_bench.data.format import Metadata, load_split, read_metadata
-from gns_bench.data.windows import GraphBatch, WindowSampler
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, load_split, read_metadata
+from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.model.features import acceleration_from_next_position
-from gns_bench.model.noise import noisy_training_pair
+from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
+from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 
 # Train settings that may change between an interrupted run and its resumption.
@@ -50,16 +51,45 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def training_loss(simulator: LearnedSimulator, batch: GraphBatch, noise_std: float, position_correction: float,
-                  generator: torch.Generator | None = None) -> torch.Tensor:
-    """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles."""
+def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
+                  position_correction: float, model: torch.nn.Module | None = None,
+                  num_moving: int | None = None, world_size: int = 1) -> torch.Tensor:
+    """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles.
+
+    `model` is what runs the forward pass (the simulator itself, or its DistributedDataParallel wrapper).
+    Under data parallelism each process holds part of the batch: dividing by the whole batch's
+    `num_moving` and multiplying by `world_size` makes the gradient average across processes equal the
+    single-process gradient of the whole batch.
+    """
     moving = ~kinematic_mask(batch.particle_type)
-    window, target_next = noisy_training_pair(batch.window, batch.target, noise_std, position_correction,
-                                              generator, mask=moving)
+    noise = position_noise * moving[:, None, None]  # kinematic particles are never noised
+    window, target_next = noisy_training_pair(batch.window, batch.target, noise, position_correction)
     target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
-    predicted = simulator(window, batch.particle_type, batch.batch, batch.context)
+    predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context)
     per_particle = (predicted - target).square().sum(dim=-1)
-    return (per_particle * moving).sum() / moving.sum().clamp(min=1)
+    denominator = max(int(moving.sum()) if num_moving is None else num_moving, 1)
+    return (per_particle * moving).sum() * (world_size / denominator)
+
+
+def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: float,
+                rank: int = 0, world_size: int = 1) -> tuple[GraphBatch, torch.Tensor, int]:
+    """This process's share of step `step`: its batch, its rows of the noise, the whole batch's moving count.
+
+    Every process draws the same global batch and noise, then keeps its slice, so N processes with
+    batch B see exactly what one process with batch N*B sees.
+    """
+    samples = sampler.samples(step, batch_size * world_size)
+    sizes = [sampler.trajectories[t].num_particles for t, _ in samples]
+    num_moving = sum(int((sampler.trajectories[t].particle_type != KINEMATIC_PARTICLE_TYPE).sum())
+                     for t, _ in samples)
+    dim = sampler.trajectories[samples[0][0]].position.shape[2]
+    noise = random_walk_position_noise((sum(sizes), sampler.window, dim), noise_std,
+                                       sampler.noise_generator(step))
+    first = rank * batch_size
+    start = sum(sizes[:first])
+    mine = samples[first:first + batch_size]
+    noise = noise[start:start + sum(sizes[first:first + batch_size])]
+    return make_batch(sampler.trajectories, mine, sampler.window), noise, num_moving
 
 
 def build_simulator(config: Config, metadata: Metadata) -> LearnedSimulator:
@@ -82,17 +112,24 @@ def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path
 def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           on_log: Callable[[int, dict[str, float]], None] | None = None,
           progress: bool = True) -> TrainResult:
-    """Train to `config.train.steps`, checkpointing into `out_dir`. `on_log(step, metrics)` gets the loss."""
+    """Train to `config.train.steps`, checkpointing into `out_dir`. `on_log(step, metrics)` gets the loss.
+
+    Launched by torchrun (WORLD_SIZE > 1), it trains data-parallel: each process takes
+    `train.batch_size` graphs of every step's batch; only rank 0 logs and writes checkpoints.
+    """
     tc = config.train
     if tc.num_threads:
         torch.set_num_threads(tc.num_threads)
     device = resolve_device(tc.device)
+    group = distributed.from_environment(device)
+    progress = progress and group.is_main
     metadata = read_metadata(dataset_dir)
     trajectories = load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
     sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed)
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)
+    model = group.wrap(simulator)
     optimiser = torch.optim.Adam(simulator.parameters(), lr=learning_rate(0, tc))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -106,9 +143,12 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         step = int(saved["step"])
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
-    (out_dir / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+    if group.is_main:
+        (out_dir / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
 
     def checkpoint(at_step: int) -> None:
+        if not group.is_main:
+            return
         save_checkpoint(checkpoint_path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir)})
@@ -121,11 +161,12 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     try:
         while step < tc.steps:
             lr = learning_rate(step, tc)
-            for group in optimiser.param_groups:
-                group["lr"] = lr
-            batch = sampler.batch(step, tc.batch_size).to(device)
-            loss = training_loss(simulator, batch, tc.noise_std, tc.position_correction,
-                                 sampler.noise_generator(step))
+            for param_group in optimiser.param_groups:
+                param_group["lr"] = lr
+            batch, noise, num_moving = step_inputs(sampler, step, tc.batch_size, tc.noise_std, group.rank,
+                                                   group.world_size)
+            loss = training_loss(simulator, batch.to(device), noise.to(device), tc.position_correction, model,
+                                 num_moving, group.world_size)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
@@ -138,7 +179,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
                 mean_loss = sum(window_losses) / len(window_losses)
                 window_losses = []
                 bar.set_postfix(loss=f"{mean_loss:.3g}", lr=f"{lr:.2g}")
-                if on_log:
+                if on_log and group.is_main:
                     on_log(step, {"train_loss": mean_loss, "learning_rate": lr})
             if step % tc.checkpoint_every == 0:
                 checkpoint(step)
@@ -148,6 +189,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     finally:
         bar.close()
     checkpoint(step)
+    group.close()
     elapsed = time.perf_counter() - started
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
     return TrainResult(checkpoint_path, losses, start_step, step, rate)

@@ -76,8 +76,8 @@ def test_random_walk_noise_statistics() -> None:
 
 def test_noise_masks_kinematic_particles() -> None:
     w, types = window()
-    noisy, target = noisy_training_pair(w, w[:, -1], 1e-2, 0.0, torch.Generator().manual_seed(1),
-                                        mask=types != 3)
+    noise = random_walk_position_noise(tuple(w.shape), 1e-2, torch.Generator().manual_seed(1), mask=types != 3)
+    noisy, target = noisy_training_pair(w, w[:, -1], noise)
     kinematic = types == 3
     assert torch.equal(noisy[kinematic], w[kinematic]) and torch.equal(target[kinematic], w[kinematic, -1])
     assert not torch.equal(noisy[~kinematic], w[~kinematic])
@@ -90,7 +90,7 @@ def test_corrected_targets(correction: float) -> None:
     g = torch.Generator().manual_seed(2)
     w, _ = window(seed=3)
     true_next = w[:, -1] + (w[:, -1] - w[:, -2]) + 1e-4
-    noisy, target = noisy_training_pair(w, true_next, 3e-4, correction, g)
+    noisy, target = noisy_training_pair(w, true_next, random_walk_position_noise(tuple(w.shape), 3e-4, g), correction)
     reached = integrate(noisy, acceleration_from_next_position(noisy, target))
     last_noise = noisy[:, -1] - w[:, -1]
     torch.testing.assert_close(reached, true_next + (1 - correction) * last_noise, rtol=0, atol=1e-7)
