@@ -5,11 +5,14 @@
     nox -s lint               ruff
     nox -s quickstart         tiny dataset -> train -> evaluate, in MLflow
     nox -s ui                 the MLflow UI on 127.0.0.1
+    nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|paper
+                              e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
 """
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import nox
 
@@ -48,3 +51,23 @@ def quickstart(session: nox.Session) -> None:
 def ui(session: nox.Session) -> None:
     install(session)
     session.run("gns-bench", "ui", *session.posargs)
+
+
+def _sweep_session(path: Path):
+    def session(session: nox.Session) -> None:
+        install(session)
+        tier = session.posargs[0] if session.posargs else "smoke"
+        session.run("gns-bench", "sweep", str(path), "--tier", tier, *session.posargs[1:])
+
+    session.__doc__ = f"sweep {path} (posargs: TIER [gns-bench sweep options])"
+    return session
+
+
+# One session per sweep file, named as gns-bench names the sweep: sweeps/ablations/noise_std.toml ->
+# ablation-noise_std. A new TOML is a new session; nothing here changes.
+for _path in sorted(Path("sweeps").rglob("*.toml")):
+    if _path.name == "tiers.toml":
+        continue
+    _folder = _path.parent.name.removesuffix("s") if _path.parent != Path("sweeps") else ""
+    _name = f"{_folder}-{_path.stem}" if _folder else _path.stem
+    nox.session(name=_name)(_sweep_session(_path))

@@ -25,23 +25,14 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_generate(args: argparse.Namespace) -> None:
-    if args.domain == "tiny":
-        from gns_bench.data.tiny import generate_tiny
+    import shutil
 
-        out = args.out or Path("data") / f"tiny-{args.tier}-s{args.seed}"
-        if out.exists() and not args.overwrite:
-            print(f"{out} exists; reusing it (--overwrite to regenerate)")
-        else:
-            generate_tiny(out, args.tier, args.seed, overwrite=args.overwrite)
-        print(out)
-        return
-    from gns_bench.physics.generate import generate_dataset
+    from gns_bench.data.generate import ensure_dataset
 
     if args.overwrite and args.out is not None and args.out.exists():
-        import shutil
-
         shutil.rmtree(args.out)
-    print(generate_dataset(args.domain, args.tier, args.seed, args.out))
+    path = ensure_dataset(args.domain, args.tier, args.seed, out=args.out)
+    print(path)
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
@@ -161,6 +152,40 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     print(f"{stem}.npz\n{stem}.png")
 
 
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("sweep", help="run every run of a sweep spec (sweeps/**/*.toml), tracked in MLflow")
+    p.add_argument("file", type=Path, help="sweep TOML, e.g. sweeps/ablations/noise_std.toml")
+    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
+    p.add_argument("--dry-run", action="store_true", help="print the table of runs and their status; run nothing")
+    p.add_argument("--launcher", default="local", choices=["local", "submitit"],
+                   help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
+    p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"],
+                   help="submitit executor (default: SLURM when available, else local)")
+    p.add_argument("--data-root", type=Path, default=Path("data"))
+    p.add_argument("--runs-root", type=Path, default=Path("runs"))
+
+
+def cmd_sweep(args: argparse.Namespace) -> None:
+    from gns_bench.sweep.runner import format_plan, prepare, run_sweep
+    from gns_bench.sweep.spec import load_sweep
+
+    sweep = load_sweep(args.file)
+    if args.dry_run:
+        runs, status = prepare(sweep, args.tier, args.data_root, generate=False)
+        print(format_plan(sweep, args.tier, runs, status))
+        return
+    outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
+                         launcher=args.launcher, cluster=args.cluster)
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("FINISHED", "SKIPPED", "FAILED")}
+    print(f"sweep {sweep.name}: {counts['FINISHED']} finished, {counts['SKIPPED']} skipped (already finished), "
+          f"{counts['FAILED']} failed; MLflow experiment '{sweep.experiment}'")
+    for outcome in outcomes:
+        if outcome.status == "FAILED":
+            print(f"  FAILED {outcome.name}: {outcome.error}")
+    if counts["FAILED"]:
+        raise SystemExit(1)
+
+
 def _add_ui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ui", help="serve the MLflow UI on 127.0.0.1")
     p.add_argument("--port", type=int, default=5000)
@@ -182,15 +207,13 @@ def _add_quickstart(sub: argparse._SubParsersAction) -> None:
 
 def cmd_quickstart(args: argparse.Namespace) -> None:
     from gns_bench.config import load_config
-    from gns_bench.data.tiny import generate_tiny
+    from gns_bench.data.generate import ensure_dataset
     from gns_bench.pipeline import train_run
     from gns_bench.tracking import tracking_uri
 
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.chdir(args.workdir)
-    dataset = Path("data/tiny-smoke-s0")
-    if not dataset.exists():
-        generate_tiny(dataset, "smoke", 0)
+    dataset = ensure_dataset("tiny", "smoke", 0)
     print(f"dataset: {dataset.resolve()}")
     config = load_config(CONFIGS / "quickstart.toml")
     out = Path("runs/quickstart")
@@ -215,6 +238,7 @@ COMMANDS = {
     "train": (_add_train, cmd_train),
     "evaluate": (_add_evaluate, cmd_evaluate),
     "rollout": (_add_rollout, cmd_rollout),
+    "sweep": (_add_sweep, cmd_sweep),
     "ui": (_add_ui, cmd_ui),
     "quickstart": (_add_quickstart, cmd_quickstart),
 }
@@ -239,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = [*args.overrides, *extra]
     try:
         COMMANDS[args.command][1](args)
-    except (DatasetError, ConfigError, FileExistsError, FileNotFoundError, ValueError) as exc:
+    except (DatasetError, ConfigError, FileExistsError, FileNotFoundError, ValueError, RuntimeError) as exc:
         print(f"gns-bench {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -25,7 +25,17 @@ def tracking_uri() -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path.cwd() / DEFAULT_DB}"
 
 
-def _mlflow():  # imported lazily: mlflow takes seconds to import
+def use_tracking_uri(uri: str) -> None:
+    """Point this process (and the processes it starts) at a tracking store."""
+    os.environ["MLFLOW_TRACKING_URI"] = uri
+
+
+def configure():
+    """Import MLflow (lazily: it takes seconds), quieten it, and point it at our store."""
+    return _mlflow()
+
+
+def _mlflow():
     import mlflow
 
     logging.getLogger("mlflow").setLevel(logging.WARNING)

@@ -1,0 +1,179 @@
+"""Sweeps: spec validation, a 2x2 smoke sweep end to end in MLflow, skipping, reruns, Ctrl-C, submitit."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import mlflow
+import pytest
+from mlflow.tracking import MlflowClient
+
+from gns_bench import tracking
+from gns_bench.cli import main
+from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
+
+GRID = '''description = "2x2 test grid"
+domain = "tiny"
+
+[config.train]
+learning_rate = 1e-3
+
+[tiers.smoke.config.model]
+latent_size = 8
+mlp_hidden_size = 8
+
+[grid]
+"model.message_passing_steps" = [1, 2]
+"train.noise_std" = [0.0, 3e-4]
+'''
+
+
+@pytest.fixture
+def sweeps(tmp_path: Path) -> Path:
+    root = tmp_path / "sweeps"
+    (root / "tests").mkdir(parents=True)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", root / "tiers.toml")
+    return root
+
+
+def runs_of(experiment: str) -> list:
+    tracking.configure()
+    return mlflow.search_runs(experiment_names=[experiment], output_format="list")
+
+
+def test_every_sweep_file_loads_and_plans() -> None:
+    files = discover_sweeps()
+    names = {load_sweep(p).name for p in files}
+    assert {f"domain-{d}" for d in ("waterdrop", "sand-3d", "boxbath", "continuous")} <= names
+    assert len([n for n in names if n.startswith("domain-")]) == 16
+    ablations = {n.removeprefix("ablation-") for n in names if n.startswith("ablation-")}
+    assert ablations == {"message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
+                         "position_encoding", "noise_correction", "mlp_depth", "latent_size", "self_edges",
+                         "global_latent", "gravity_bias", "linear_encoder_decoder"}
+    mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
+    assert [r.config.model.message_passing_steps for r in mp.plan("small")] == [0, 1, 2, 3, 5, 7, 10, 15]
+    assert all(r.config.train.steps == 20 and r.config.model.latent_size == 16 for r in mp.plan("smoke"))
+    assert len(mp.plan("paper")) == 8 * 3 and mp.plan("paper")[0].config.train.steps == 20_000_000
+
+
+def test_smoke_sweep_end_to_end_skip_and_rerun(sweeps: Path, tmp_path: Path) -> None:
+    path = sweeps / "tests" / "grid.toml"
+    path.write_text(GRID)
+    sweep = load_sweep(path)
+    assert sweep.name == "test-grid"
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+
+    outcomes = run_sweep(sweep, "smoke", **roots)
+    assert sorted(o.status for o in outcomes) == ["FINISHED"] * 4
+    runs = runs_of(sweep.experiment)
+    assert len(runs) == 4 and all(r.info.status == "FINISHED" for r in runs)
+    combos = {(r.data.params["model.message_passing_steps"], r.data.params["train.noise_std"]) for r in runs}
+    assert combos == {("1", "0.0"), ("1", "0.0003"), ("2", "0.0"), ("2", "0.0003")}
+    for r in runs:
+        assert r.data.params["model.latent_size"] == "8" and r.data.params["train.steps"] == "20"
+        assert r.data.params["train.learning_rate"] == "0.001"
+        assert r.data.tags["axes"] == "model.message_passing_steps,train.noise_std"
+        assert {"test/rollout_mse", "test/one_step_mse", "train_loss"} <= set(r.data.metrics)
+
+    again = run_sweep(sweep, "smoke", **roots)
+    assert [o.status for o in again] == ["SKIPPED"] * 4
+    assert len(runs_of(sweep.experiment)) == 4
+
+    victim = runs[0]
+    MlflowClient(tracking_uri=tracking.tracking_uri()).delete_run(victim.info.run_id)
+    third = run_sweep(sweep, "smoke", **roots)
+    assert sorted(o.status for o in third) == ["FINISHED", "SKIPPED", "SKIPPED", "SKIPPED"]
+    assert [o.name for o in third if o.status == "FINISHED"] == [victim.info.run_name]
+    assert len(runs_of(sweep.experiment)) == 4
+
+
+def test_dry_run_prints_the_table(sweeps: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = sweeps / "tests" / "dry.toml"
+    path.write_text(GRID)
+    assert main(["sweep", str(path), "--dry-run", "--data-root", str(tmp_path / "data")]) == 0
+    out = capsys.readouterr().out
+    assert "4 runs" in out and "message_passing_steps" in out and "dataset missing" in out
+    assert mlflow.get_experiment_by_name("sweep:test-dry") is None
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [(GRID.replace("domain =", "domian ="), "unknown key 'domian'"),
+     (GRID.replace("latent_size = 8", "latent_size = \"big\""), "model.latent_size: expected int"),
+     (GRID.replace("learning_rate = 1e-3", "learning_rate = -1.0"), "train.learning_rate: must be > 0"),
+     (GRID.replace('"train.noise_std" = [0.0, 3e-4]', '"train.noise_std" = [-1.0]'), "must be >= 0"),
+     (GRID.replace('"train.noise_std"', '"train.noise"'), "unknown key 'train.noise'"),
+     (GRID + "\n[tiers.huge]\nseeds = [0]\n", "unknown tier 'tiers.huge'"),
+     (GRID + "\n[tiers.smoke]\nseeds = []\n", "tiers.smoke.seeds"),
+     (GRID + "\n[tiers.smoke]\ngrid = { \"model.latent_size\" = [4] }\n", "does not have")],
+)
+def test_broken_sweep_file_gives_a_clear_error_and_runs_nothing(sweeps: Path, tmp_path: Path, text: str,
+                                                                 message: str, capsys: pytest.CaptureFixture) -> None:
+    path = sweeps / "tests" / "broken.toml"
+    path.write_text(text)
+    with pytest.raises(SweepError, match=message):
+        load_sweep(path)
+    assert main(["sweep", str(path), "--data-root", str(tmp_path / "data")]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and not (tmp_path / "data").exists()
+    assert mlflow.get_experiment_by_name("sweep:test-broken") is None
+
+
+def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    path = sweeps / "tests" / "interrupt.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    from gns_bench.train import loop
+
+    real, calls = loop.training_loss, {"n": 0}
+
+    def interrupt_at_step_7(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 7:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "training_loss", interrupt_at_step_7)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(sweep, "smoke", **roots)
+    (killed,) = runs_of(sweep.experiment)
+    assert killed.info.status == "KILLED"
+    monkeypatch.setattr(loop, "training_loss", real)
+    outcomes = run_sweep(sweep, "smoke", **roots)
+    assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"]
+    runs = runs_of(sweep.experiment)
+    assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs)
+    resumed = next(r for r in runs if r.info.run_id == killed.info.run_id)
+    steps = [m.step for m in MlflowClient(tracking_uri=tracking.tracking_uri()).get_metric_history(
+        resumed.info.run_id, "train_loss")]
+    assert steps == [10, 20]  # steps 1-6 kept from the checkpoint, the rest resumed in the same run
+
+
+def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
+    pytest.importorskip("submitit")
+    path = sweeps / "tests" / "submitit.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs",
+                         launcher="submitit", cluster="local", progress=False)
+    assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"], [o.error for o in outcomes]
+    runs = runs_of(sweep.experiment)
+    assert sorted(r.data.params["model.message_passing_steps"] for r in runs) == ["1", "2"]
+    assert all(r.info.status == "FINISHED" for r in runs)
+
+
+def test_nox_has_one_session_per_sweep_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib.util
+
+    import nox.registry
+
+    monkeypatch.chdir(SWEEPS_DIR.parent)
+    spec = importlib.util.spec_from_file_location("noxfile_under_test", SWEEPS_DIR.parent / "noxfile.py")
+    spec.loader.exec_module(importlib.util.module_from_spec(spec))
+    sessions = set(nox.registry.get())
+    assert {load_sweep(p).name for p in discover_sweeps()} <= sessions
+    assert {"tests", "lint", "ui"} <= sessions
