@@ -89,7 +89,7 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         result = train(config, dataset_dir, out_dir, resume=resume, progress=progress,
                        on_log=lambda step, metrics: run.log_metrics(metrics, step=step))
         run.log_metrics({"train/steps_per_second": result.steps_per_second,
-                         "train/final_step": result.final_step})
+                         "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s})
         run.log_artifact(result.checkpoint, "checkpoint")
         metrics: dict[str, float] = {}
         if evaluate_after:

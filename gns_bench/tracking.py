@@ -56,11 +56,28 @@ def git_sha() -> str:
         return "unknown"
 
 
+def hardware_description(device: str) -> str:
+    """What a number was measured on, for reports: the GPU's name, or the CPU model and core count."""
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {torch.get_num_threads()} threads"
+
+
 def environment_tags(device: str) -> dict[str, str]:
     import torch
 
     return {"git_sha": git_sha(), "device": device, "torch_version": torch.__version__,
-            "python_version": platform.python_version(), "host_cpu": platform.processor() or platform.machine()}
+            "python_version": platform.python_version(), "hardware": hardware_description(device)}
 
 
 def experiment_id(name: str) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,7 +55,9 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         trajectories = trajectories[: config.max_trajectories]
     results, per_traj = [], []
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
+        started = time.perf_counter()
         result = rollout(simulator, traj, config.rollout_steps, hooks, device)
+        rollout_seconds = time.perf_counter() - started
         mask = result.moving_mask
         k = result.predicted.shape[0]
         row = {
@@ -65,6 +68,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
                 metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0]),
                 result.ground_truth, mask),
             "rollout_steps": k,
+            "rollout_seconds_per_step": rollout_seconds / max(k, 1),
         }
         for h, value in metrics.mse_at_horizons(result.predicted, result.ground_truth[:k], mask).items():
             row[f"mse_h{h}"] = value

@@ -38,6 +38,7 @@ class TrainResult:
     start_step: int
     final_step: int
     steps_per_second: float
+    wall_time_s: float  # training time over every call that led to this checkpoint (resumes included)
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -134,13 +135,14 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    step = 0
+    step, earlier_wall_time = 0, 0.0
     if resume and checkpoint_path.exists():
         saved = load_checkpoint(checkpoint_path, device)
         _check_resumable(saved, config, metadata, checkpoint_path)
         simulator.load_state_dict(saved["model"])
         optimiser.load_state_dict(saved["optimizer"])
         step = int(saved["step"])
+        earlier_wall_time = float(saved.get("wall_time_s", 0.0))
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
     if group.is_main:
@@ -151,7 +153,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             return
         save_checkpoint(checkpoint_path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
-            "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir)})
+            "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
+            "wall_time_s": earlier_wall_time + time.perf_counter() - started})
 
     start_step, losses, window_losses = step, [], []
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
@@ -192,7 +195,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     group.close()
     elapsed = time.perf_counter() - started
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
-    return TrainResult(checkpoint_path, losses, start_step, step, rate)
+    return TrainResult(checkpoint_path, losses, start_step, step, rate, earlier_wall_time + elapsed)
 
 
 def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
