@@ -5,6 +5,7 @@
     nox -s lint               ruff
     nox -s quickstart         tiny dataset -> train -> evaluate, in MLflow
     nox -s ui                 the MLflow UI on 127.0.0.1
+    nox -s report -- SWEEP    a sweep's report from MLflow (markdown + PNG) into reports/
     nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|paper
                               e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
 """
@@ -45,6 +46,15 @@ def lint(session: nox.Session) -> None:
 def quickstart(session: nox.Session) -> None:
     install(session)
     session.run("gns-bench", "quickstart", *session.posargs)
+
+
+@nox.session
+def report(session: nox.Session) -> None:
+    """nox -s report -- SWEEP [--tier T]: the sweep's report from MLflow into reports/."""
+    install(session)
+    if not session.posargs:
+        session.error("usage: nox -s report -- SWEEP [--tier smoke|small|paper]")
+    session.run("gns-bench", "report", *session.posargs)
 
 
 @nox.session

@@ -186,6 +186,20 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         raise SystemExit(1)
 
 
+def _add_report(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
+    p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
+                                 "or 'domains' for the table across all domain sweeps")
+    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
+    p.add_argument("--reports-root", type=Path, default=Path("reports"))
+
+
+def cmd_report(args: argparse.Namespace) -> None:
+    from gns_bench.report import write_report
+
+    print(write_report(args.sweep, args.tier, args.reports_root))
+
+
 def _add_ui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ui", help="serve the MLflow UI on 127.0.0.1")
     p.add_argument("--port", type=int, default=5000)
@@ -239,6 +253,7 @@ COMMANDS = {
     "evaluate": (_add_evaluate, cmd_evaluate),
     "rollout": (_add_rollout, cmd_rollout),
     "sweep": (_add_sweep, cmd_sweep),
+    "report": (_add_report, cmd_report),
     "ui": (_add_ui, cmd_ui),
     "quickstart": (_add_quickstart, cmd_quickstart),
 }
