@@ -6,6 +6,7 @@
     nox -s quickstart         tiny dataset -> train -> evaluate, in MLflow
     nox -s ui                 the MLflow UI on 127.0.0.1
     nox -s report -- SWEEP    a sweep's report from MLflow (markdown + PNG) into reports/
+    nox -s bench              the speed benchmark into reports/bench/
     nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|paper
                               e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
 """
@@ -55,6 +56,13 @@ def report(session: nox.Session) -> None:
     if not session.posargs:
         session.error("usage: nox -s report -- SWEEP [--tier smoke|small|paper]")
     session.run("gns-bench", "report", *session.posargs)
+
+
+@nox.session
+def bench(session: nox.Session) -> None:
+    """nox -s bench [-- --quick]: the speed benchmark into reports/bench/ (and MLflow)."""
+    install(session)
+    session.run("gns-bench", "bench", *session.posargs)
 
 
 @nox.session

@@ -200,6 +200,23 @@ def cmd_report(args: argparse.Namespace) -> None:
     print(write_report(args.sweep, args.tier, args.reports_root))
 
 
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmark training and rollout speed against this machine's limits")
+    p.add_argument("--out", type=Path, default=Path("reports/bench"), help="where bench.json, README.md, PNG go")
+    p.add_argument("--quick", action="store_true", help="small sizes: seconds, for a first look")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--no-mlflow", action="store_true", help="do not log the results to MLflow")
+
+
+def cmd_bench(args: argparse.Namespace) -> None:
+    from gns_bench.bench.run import BenchSettings, run_bench
+
+    settings = BenchSettings.quick() if args.quick else BenchSettings()
+    settings.device = args.device
+    run_bench(args.out, settings, log_to_mlflow=not args.no_mlflow)
+    print(args.out / "README.md")
+
+
 def _add_ui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ui", help="serve the MLflow UI on 127.0.0.1")
     p.add_argument("--port", type=int, default=5000)
@@ -254,6 +271,7 @@ COMMANDS = {
     "rollout": (_add_rollout, cmd_rollout),
     "sweep": (_add_sweep, cmd_sweep),
     "report": (_add_report, cmd_report),
+    "bench": (_add_bench, cmd_bench),
     "ui": (_add_ui, cmd_ui),
     "quickstart": (_add_quickstart, cmd_quickstart),
 }

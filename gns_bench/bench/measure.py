@@ -1,0 +1,185 @@
+"""Measurements for `gns-bench bench`: GEMM peak, model FLOPs, training and rollout step times.
+
+All timings are medians of repeated runs after warm-up, taken in one process so that ratios (achieved
+FLOP rate / GEMM peak, neighbour-search share of a step, speed-up over a baseline) compare like with like
+on a shared machine.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from contextlib import nullcontext
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from gns_bench.config import ModelConfig
+from gns_bench.data.format import Metadata
+from gns_bench.model import features
+from gns_bench.model.simulator import LearnedSimulator
+
+
+def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Callable[[], None] | None = None
+          ) -> float:
+    """Median wall time of `fn` in seconds."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if sync:
+            sync()
+        start = time.perf_counter()
+        fn()
+        if sync:
+            sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def autocast(device: torch.device, precision: str):
+    if precision == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return nullcontext()
+
+
+def gemm_peak_gflops(dtype: torch.dtype, device: torch.device, sizes: tuple[int, ...] = (1024, 2048, 4096),
+                     repeats: int = 5) -> float:
+    """The best square-GEMM rate over a few sizes: the machine's practical matmul limit."""
+    best = 0.0
+    for n in sizes:
+        a = torch.randn(n, n, device=device).to(dtype)
+        b = torch.randn(n, n, device=device).to(dtype)
+        seconds = timed(lambda a=a, b=b: a @ b, repeats, sync=_sync(device))
+        best = max(best, 2 * n**3 / seconds / 1e9)
+    return best
+
+
+def skinny_gemm_gflops(rows: int, width: int, dtype: torch.dtype, device: torch.device, repeats: int = 5) -> float:
+    """The rate of the GEMM shape that dominates the GNS: [E, L] @ [L, L]."""
+    a = torch.randn(rows, width, device=device).to(dtype)
+    b = torch.randn(width, width, device=device).to(dtype)
+    seconds = timed(lambda: a @ b, repeats, sync=_sync(device))
+    return 2 * rows * width * width / seconds / 1e9
+
+
+def _sync(device: torch.device) -> Callable[[], None] | None:
+    return torch.cuda.synchronize if device.type == "cuda" else None
+
+
+def linear_flops(module: torch.nn.Module, rows: int) -> int:
+    return sum(2 * m.in_features * m.out_features * rows for m in module.modules() if isinstance(m, torch.nn.Linear))
+
+
+def forward_flops(simulator: LearnedSimulator, num_nodes: int, num_edges: int) -> int:
+    """Multiply-add FLOPs of one forward pass as implemented (the split first edge layer counted as run)."""
+    net = simulator.network
+    total = linear_flops(net.node_encoder, num_nodes) + linear_flops(net.decoder, num_nodes)
+    if not net.uses_edges:
+        return total
+    total += linear_flops(net.edge_encoder, num_edges)
+    for index in net.schedule:
+        block = net.processor[index]
+        first = block.edge_mlp[0]
+        latent = block.latent_size
+        hidden = first.out_features
+        total += 2 * latent * hidden * num_edges  # the edge's own part of the first layer
+        total += 2 * (2 * latent) * hidden * num_nodes  # sender and receiver projections, per node
+        total += linear_flops(block.edge_mlp[1:], num_edges) + linear_flops(block.node_mlp, num_nodes)
+    return total
+
+
+@dataclass
+class Scene:
+    """A synthetic particle cloud at the paper's density: uniform in a box, ~`neighbours` within R."""
+
+    window: torch.Tensor  # [N, W, D]
+    particle_type: torch.Tensor
+    metadata: Metadata
+
+
+def synthetic_scene(num_particles: int, dim: int = 2, radius: float = 0.015, neighbours: float = 15.0,
+                    seed: int = 0) -> Scene:
+    rng = np.random.default_rng(seed)
+    ball = np.pi * radius**2 if dim == 2 else 4 / 3 * np.pi * radius**3
+    side = (num_particles * ball / neighbours) ** (1 / dim)  # density giving ~`neighbours` within R
+    start = rng.uniform(0.1, 0.1 + side, size=(num_particles, 1, dim))
+    velocity = rng.normal(0, 1e-3, size=(num_particles, 1, dim))
+    window = start + np.arange(6)[None, :, None] * velocity
+    meta = Metadata(bounds=[[0.1, 0.1 + side]] * dim, sequence_length=100, default_connectivity_radius=radius,
+                    dim=dim, dt=1.0, vel_mean=[0.0] * dim, vel_std=[1e-3] * dim, acc_mean=[0.0] * dim,
+                    acc_std=[1e-4] * dim, particle_types={"water": 5}, walls=True)
+    return Scene(torch.tensor(window, dtype=torch.float32), torch.full((num_particles,), 5), meta)
+
+
+@dataclass
+class RolloutBreakdown:
+    neighbour_search_s: float
+    features_s: float
+    gnn_s: float
+    integration_s: float
+    num_edges: int
+
+    @property
+    def total_s(self) -> float:
+        return self.neighbour_search_s + self.features_s + self.gnn_s + self.integration_s
+
+
+@torch.no_grad()
+def rollout_breakdown(simulator: LearnedSimulator, scene: Scene, device: torch.device, precision: str = "fp32",
+                      repeats: int = 5) -> RolloutBreakdown:
+    """One rollout step split into neighbour search, feature building, GNN and integration."""
+    window = scene.window.to(device)
+    types = scene.particle_type.to(device)
+    sync = _sync(device)
+    edges = simulator.build_graph(window[:, -1])
+    search = timed(lambda: simulator.build_graph(window[:, -1]), repeats, sync=sync)
+    norm = simulator.normalisation
+
+    def build() -> tuple[torch.Tensor, torch.Tensor]:
+        x = features.node_features(window, norm, bounds=simulator.bounds, radius=simulator.radius,
+                                   walls=simulator.use_walls, absolute_positions=simulator.absolute)
+        if simulator.use_type_embedding:
+            x = torch.cat([x, simulator.type_embedding(types)], dim=1)
+        e = features.edge_features(window[:, -1], edges, simulator.radius, bounds=simulator.bounds,
+                                   absolute_positions=simulator.absolute)
+        return x, e
+
+    feature_time = timed(build, repeats, sync=sync)
+    x, e = build()
+    with autocast(device, precision):
+        gnn = timed(lambda: simulator.network(x, e, edges), repeats, sync=sync)
+        out = simulator.network(x, e, edges).float()
+    integrate = timed(lambda: features.integrate(window, simulator.denormalise_acceleration(out)), repeats,
+                      sync=sync)
+    return RolloutBreakdown(search, feature_time, gnn, integrate, int(edges.shape[1]))
+
+
+def train_step_seconds(simulator: LearnedSimulator, scene: Scene, device: torch.device, precision: str = "fp32",
+                       repeats: int = 5) -> tuple[float, float]:
+    """(seconds per forward+backward+Adam step on a fixed graph, the loss of the last step)."""
+    window = scene.window.to(device)
+    types = scene.particle_type.to(device)
+    edges = simulator.build_graph(window[:, -1])
+    target = torch.zeros(window.shape[0], window.shape[2], device=device)
+    optimiser = torch.optim.Adam(simulator.parameters(), lr=1e-4)
+    losses = []
+
+    def step() -> None:
+        with autocast(device, precision):
+            predicted = simulator(window, types, edge_index=edges)
+        loss = (predicted.float() - target).square().sum(-1).mean()
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        losses.append(float(loss.detach()))
+
+    seconds = timed(step, repeats, sync=_sync(device))
+    return seconds, losses[-1]
+
+
+def build_model(config: ModelConfig, scene: Scene, device: torch.device, seed: int = 0) -> LearnedSimulator:
+    torch.manual_seed(seed)
+    return LearnedSimulator(config, scene.metadata, 3e-4).to(device)

@@ -1,0 +1,181 @@
+"""`gns-bench bench`: one process, one run, every ratio measured against this machine's own limits.
+
+Writes `bench.json`, `README.md` (tables) and PNG plots into the output folder and logs them to MLflow
+(experiment `bench`). Scaling points run in fresh subprocesses so each one's peak memory is its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gns_bench import tracking
+from gns_bench.bench.baseline import concatenated_baseline
+from gns_bench.bench.measure import (
+    build_model,
+    forward_flops,
+    gemm_peak_gflops,
+    rollout_breakdown,
+    skinny_gemm_gflops,
+    synthetic_scene,
+    train_step_seconds,
+)
+from gns_bench.config import ModelConfig
+from gns_bench.train.loop import resolve_device
+
+# Paper domains for the inference-time table (App. C.6): id, dim, max particles (Knowl 5), radius.
+INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
+                     ("waterramps", 2, 2300), ("continuous", 2, 4300), ("boxbath", 3, 1000),
+                     ("water-3d-s", 3, 5800), ("water-3d", 3, 13000), ("goop-3d", 3, 14000), ("sand-3d", 3, 20000)]
+
+
+@dataclass
+class BenchSettings:
+    device: str = "auto"
+    train_particles: int = 2000  # WaterDrop-like 2D graph: ~2k nodes, ~30k edges
+    scaling_2d: tuple[int, ...] = (1000, 4000, 16000, 85000)
+    scaling_3d: tuple[int, ...] = (1000, 10000, 100000)
+    inference_domains: list[tuple[str, int, int]] = field(default_factory=lambda: list(INFERENCE_DOMAINS))
+    repeats: int = 5
+    gemm_sizes: tuple[int, ...] = (1024, 2048, 4096)
+
+    @classmethod
+    def quick(cls) -> BenchSettings:
+        """Seconds, not minutes: for tests and a first look."""
+        return cls(train_particles=400, scaling_2d=(500, 1000), scaling_3d=(500,),
+                   inference_domains=[("waterdrop", 2, 1000), ("boxbath", 3, 1000)], repeats=2)
+
+    @classmethod
+    def tiny(cls) -> BenchSettings:
+        """The smallest run that exercises every measurement (tests)."""
+        return cls(train_particles=100, scaling_2d=(200,), scaling_3d=(), inference_domains=[("waterdrop", 2, 200)],
+                   repeats=1, gemm_sizes=(256,))
+
+
+def domain_radius(domain: str, dim: int) -> float:
+    try:
+        from gns_bench.physics.spec import load_domain_spec
+
+        return float(load_domain_spec(domain).connectivity_radius)
+    except Exception:  # noqa: BLE001 - the spec is optional here; fall back to the paper's 2D radius scale
+        return 0.015 if dim == 2 else 0.035
+
+
+def measure_training(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
+    scene = synthetic_scene(settings.train_particles, 2)
+    rows = []
+    peaks = {p: gemm_peak_gflops(torch.float32 if p == "fp32" else torch.bfloat16, device, settings.gemm_sizes,
+                                 settings.repeats) for p in ("fp32", "bf16")}
+    model = build_model(ModelConfig(), scene, device)
+    edges = int(model.build_graph(scene.window[:, -1].to(device)).shape[1])
+    skinny = {p: skinny_gemm_gflops(edges, 128, torch.float32 if p == "fp32" else torch.bfloat16, device)
+              for p in ("fp32", "bf16")}
+    flops = 3 * forward_flops(model, scene.window.shape[0], edges)  # forward + backward ~ 3 x forward
+    for name, make in (("gns-bench (split first edge layer)", lambda: build_model(ModelConfig(), scene, device)),
+                       ("PyG MessagePassing, concatenated inputs",
+                        lambda: concatenated_baseline(build_model(ModelConfig(), scene, device)))):
+        for precision in ("fp32", "bf16"):
+            seconds, loss = train_step_seconds(make(), scene, device, precision, settings.repeats)
+            rate = flops / seconds / 1e9
+            rows.append({"model": name, "precision": precision, "nodes": scene.window.shape[0], "edges": edges,
+                         "step_s": seconds, "steps_per_s": 1 / seconds, "gflops": rate,
+                         "gemm_peak_gflops": peaks[precision], "fraction_of_peak": rate / peaks[precision],
+                         "skinny_gemm_gflops": skinny[precision], "fraction_of_skinny": rate / skinny[precision],
+                         "loss_after_steps": loss})
+    return rows
+
+
+def measure_inference(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
+    rows = []
+    for domain, dim, particles in settings.inference_domains:
+        scene = synthetic_scene(particles, dim, domain_radius(domain, dim))
+        model = build_model(ModelConfig(), scene, device)
+        for precision in ("fp32", "bf16"):
+            b = rollout_breakdown(model, scene, device, precision, settings.repeats)
+            rows.append({"domain": domain, "dim": dim, "precision": precision, "particles": particles,
+                         "edges": b.num_edges, "step_s": b.total_s, "neighbour_search_s": b.neighbour_search_s,
+                         "features_s": b.features_s, "gnn_s": b.gnn_s, "integration_s": b.integration_s,
+                         "search_share": b.neighbour_search_s / b.total_s,
+                         "search_and_graph_share": (b.neighbour_search_s + b.features_s) / b.total_s})
+    return rows
+
+
+def scaling_point(particles: int, dim: int, device: str) -> dict[str, Any]:
+    """One rollout step at this size (run in a fresh process by `measure_scaling`)."""
+    import resource
+
+    torch_device = resolve_device(device)
+    baseline_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports kB
+    scene = synthetic_scene(particles, dim, 0.015 if dim == 2 else 0.035)
+    model = build_model(ModelConfig(), scene, torch_device)
+    b = rollout_breakdown(model, scene, torch_device, "fp32", repeats=1)
+    if torch_device.type == "cuda":
+        peak_mb = torch.cuda.max_memory_allocated() / 2**20
+    else:
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"dim": dim, "particles": particles, "edges": b.num_edges, "step_s": b.total_s,
+            "search_share": b.neighbour_search_s / b.total_s, "peak_memory_mb": peak_mb,
+            "process_baseline_mb": baseline_mb if torch_device.type == "cpu" else 0.0, "device": str(torch_device)}
+
+
+def measure_scaling(settings: BenchSettings, timeout_s: int = 1800) -> list[dict[str, Any]]:
+    rows = []
+    for dim, sizes in ((2, settings.scaling_2d), (3, settings.scaling_3d)):
+        for particles in sizes:
+            code = ("import json; from gns_bench.bench.run import scaling_point; "
+                    f"print(json.dumps(scaling_point({particles}, {dim}, {settings.device!r})))")
+            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout_s,
+                                  env={**os.environ, "PYTHONWARNINGS": "ignore"})
+            if done.returncode != 0:
+                rows.append({"dim": dim, "particles": particles, "error": done.stderr.strip().splitlines()[-1:]})
+            else:
+                rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    return rows
+
+
+def run_bench(out_dir: str | Path = "reports/bench", settings: BenchSettings | None = None,
+              log_to_mlflow: bool = True) -> dict[str, Any]:
+    from gns_bench.bench.report import write_bench_report
+
+    settings = settings or BenchSettings()
+    device = resolve_device(settings.device)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {
+        "environment": {"hardware": tracking.hardware_description(str(device)), "device": str(device),
+                        "torch": torch.__version__, "threads": torch.get_num_threads()},
+        "settings": asdict(settings),
+    }
+    print(f"bench on {results['environment']['hardware']}: training step...", flush=True)
+    results["train"] = measure_training(settings, device)
+    print("rollout steps of the paper's domains...", flush=True)
+    results["inference"] = measure_inference(settings, device)
+    print("scaling in particle count...", flush=True)
+    results["scaling"] = measure_scaling(settings)
+    (out_dir / "bench.json").write_text(json.dumps(results, indent=2) + "\n")
+    paths = write_bench_report(results, out_dir)
+    if log_to_mlflow:
+        _log(results, [out_dir / "bench.json", *paths])
+    return results
+
+
+def _log(results: dict[str, Any], paths: list[Path]) -> None:
+    device = results["environment"]["device"]
+    with tracking.start_run("bench", f"bench-{device}", tags=tracking.environment_tags(device)) as run:
+        metrics = {}
+        for row in results["train"]:
+            key = "split" if row["model"].startswith("gns-bench") else "concat"
+            metrics[f"train/{key}_{row['precision']}_steps_per_s"] = row["steps_per_s"]
+            metrics[f"train/{key}_{row['precision']}_fraction_of_peak"] = row["fraction_of_peak"]
+        for row in results["inference"]:
+            metrics[f"rollout/{row['domain']}_{row['precision']}_step_s"] = row["step_s"]
+        run.log_metrics(metrics)
+        for path in paths:
+            run.log_artifact(path, "bench")

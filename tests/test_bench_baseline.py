@@ -1,0 +1,50 @@
+"""The speed baseline computes the same function as the optimised model (a speed claim needs this)."""
+
+from __future__ import annotations
+
+import torch
+
+from gns_bench.bench.baseline import concatenated_baseline
+from gns_bench.bench.measure import build_model, forward_flops, synthetic_scene
+from gns_bench.config import ModelConfig
+
+
+def test_baseline_equals_the_split_edge_model() -> None:
+    scene = synthetic_scene(300, dim=2)
+    model = build_model(ModelConfig(latent_size=32, mlp_hidden_size=32, message_passing_steps=3), scene,
+                        torch.device("cpu"))
+    baseline = concatenated_baseline(model)
+    with torch.no_grad():
+        a = model(scene.window, scene.particle_type)
+        b = baseline(scene.window, scene.particle_type)
+    torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    assert a.abs().mean() > 1e-3
+
+
+def test_forward_flops_count_every_linear_layer() -> None:
+    scene = synthetic_scene(100, dim=2)
+    config = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=1, mlp_hidden_layers=0)
+    model = build_model(config, scene, torch.device("cpu"))
+    n, e = 100, 1000
+    node_in = model.network.node_encoder[0].in_features
+    expected = 2 * (node_in * 8 * n + 3 * 8 * e + 8 * 2 * n)  # node encoder, edge encoder (3 inputs), decoder
+    expected += 2 * (8 * 8 * e + 16 * 8 * n + 16 * 8 * n)  # split edge layer: edge part, node projections; node MLP
+    assert forward_flops(model, n, e) == expected
+
+
+def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
+    import json
+
+    from PIL import Image
+
+    from gns_bench.bench.run import BenchSettings, run_bench
+
+    results = run_bench(tmp_path, BenchSettings.tiny(), log_to_mlflow=False)
+    saved = json.loads((tmp_path / "bench.json").read_text())
+    assert saved["train"][0]["steps_per_s"] > 0 and len(saved["train"]) == 4
+    assert {r["precision"] for r in results["inference"]} == {"fp32", "bf16"}
+    assert saved["scaling"][0]["peak_memory_mb"] > 0
+    readme = (tmp_path / "README.md").read_text()
+    assert "## Targets" in readme and "PyG MessagePassing baseline" in readme and "waterdrop" in readme
+    with Image.open(tmp_path / "bench_scaling.png") as image:
+        assert image.size[0] > 300
