@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import nox
@@ -71,11 +72,30 @@ def ui(session: nox.Session) -> None:
     session.run("gns-bench", "ui", *session.posargs)
 
 
+SWEEP_ENV = Path(".nox") / "sweeps-shared"
+
+
+def shared_sweep_env(session: nox.Session) -> Path:
+    """One environment for all sweep sessions (28 of them need the same packages), installed once and
+    again whenever pyproject.toml or the constraints change. Returns its bin folder."""
+    stamp = SWEEP_ENV / "installed.stamp"
+    sources = [Path("pyproject.toml"), Path(CONSTRAINTS)]
+    bin_dir = SWEEP_ENV / "bin"
+    if not stamp.exists() or any(p.stat().st_mtime > stamp.stat().st_mtime for p in sources):
+        session.run(sys.executable, "-m", "venv", str(SWEEP_ENV), external=True)
+        pip = [str(bin_dir / "python"), "-m", "pip", "install", "-q", "-c", CONSTRAINTS]
+        session.run(*pip, "torch", external=True)
+        session.run(*pip, "-e", ".", external=True)
+        stamp.write_text("ok\n")
+    return bin_dir
+
+
 def _sweep_session(path: Path):
     def session(session: nox.Session) -> None:
-        install(session)
+        bin_dir = shared_sweep_env(session)
         tier = session.posargs[0] if session.posargs else "smoke"
-        session.run("gns-bench", "sweep", str(path), "--tier", tier, *session.posargs[1:])
+        session.run(str(bin_dir / "gns-bench"), "sweep", str(path), "--tier", tier, *session.posargs[1:],
+                    external=True)
 
     session.__doc__ = f"sweep {path} (posargs: TIER [gns-bench sweep options])"
     return session
@@ -88,4 +108,4 @@ for _path in sorted(Path("sweeps").rglob("*.toml")):
         continue
     _folder = _path.parent.name.removesuffix("s") if _path.parent != Path("sweeps") else ""
     _name = f"{_folder}-{_path.stem}" if _folder else _path.stem
-    nox.session(name=_name)(_sweep_session(_path))
+    nox.session(name=_name, venv_backend="none")(_sweep_session(_path))
