@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gns_bench.data.format import Trajectory
+from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 
@@ -51,7 +52,9 @@ class RolloutResult:
 
 @torch.no_grad()
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
-            hooks: Sequence[Hook] = (), device: torch.device | str = "cpu") -> RolloutResult:
+            hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
+            neighbour_skin: float = 0.0) -> RolloutResult:
+    """Roll out from the first W frames. `neighbour_skin` > 0 reuses Verlet neighbour lists (same edges)."""
     w = simulator.config.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
@@ -62,10 +65,15 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
                if trajectory.step_context is not None else None)
     window = truth[:w].transpose(0, 1).contiguous()  # [N, W, D]
     predicted, stopped_at, reason = [], None, None
+    neighbours = None
+    if neighbour_skin > 0 and simulator.network.uses_edges:
+        neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.config.neighbour_backend,
+                                      simulator.config.self_edges)
     for step in range(num_steps):
         frame = w + step
         step_context = context[frame - 1: frame] if context is not None else None
-        next_position = simulator.predict_next_position(window, particle_type, None, step_context)
+        edges = neighbours(window[:, -1]) if neighbours is not None else None
+        next_position = simulator.predict_next_position(window, particle_type, None, step_context, edges)
         next_position = torch.where(kinematic, truth[frame], next_position)
         try:
             for hook in hooks:

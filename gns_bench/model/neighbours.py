@@ -41,8 +41,7 @@ def radius_graph(positions: torch.Tensor, radius: float, batch: torch.Tensor | N
     senders, receivers = search(positions.detach(), radius * _SEARCH_SLACK, batch)
     senders, receivers = _exact_filter(positions.detach(), senders, receivers, radius)
     if self_edges:
-        loops = torch.arange(n, device=positions.device)
-        senders, receivers = torch.cat([senders, loops]), torch.cat([receivers, loops])
+        return radius_graph_from(senders, receivers, n, positions.device)
     return _sorted(senders, receivers, n)
 
 
@@ -136,3 +135,39 @@ def _cell_list_candidates(positions: torch.Tensor, radius: float,
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return empty, empty
     return torch.cat(senders_all), torch.cat(receivers_all)
+
+
+class VerletNeighbours:
+    """Verlet neighbour lists for rollouts: candidates searched at R + skin are reused until some particle
+    has moved more than skin / 2 since they were built (then no pair can have crossed R unseen); every
+    step filters them to exactly R, so the edges equal a fresh search's, in the same order.
+    """
+
+    def __init__(self, radius: float, skin: float, backend: str = "scipy", self_edges: bool = False):
+        if skin <= 0:
+            raise ValueError(f"skin must be > 0, got {skin}")
+        self.radius, self.skin, self.backend, self.self_edges = radius, skin, backend, self_edges
+        self._reference: torch.Tensor | None = None
+        self._candidates: torch.Tensor | None = None
+        self.rebuilds = 0
+        self.calls = 0
+
+    def __call__(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        self.calls += 1
+        positions = positions.detach()
+        stale = (self._reference is None or self._reference.shape != positions.shape
+                 or float((positions - self._reference).norm(dim=1).max()) > self.skin / 2)
+        if stale:
+            self._candidates = radius_graph(positions, self.radius + self.skin, batch, backend=self.backend)
+            self._reference = positions.clone()
+            self.rebuilds += 1
+        senders, receivers = _exact_filter(positions, self._candidates[0], self._candidates[1], self.radius)
+        if self.self_edges:
+            return radius_graph_from(senders, receivers, positions.shape[0], positions.device)
+        return torch.stack([senders, receivers])  # the candidates' order survives filtering
+
+
+def radius_graph_from(senders: torch.Tensor, receivers: torch.Tensor, n: int, device: torch.device) -> torch.Tensor:
+    """Add self-loops to filtered edges and restore the canonical order."""
+    loops = torch.arange(n, device=device)
+    return _sorted(torch.cat([senders, loops]), torch.cat([receivers, loops]), n)

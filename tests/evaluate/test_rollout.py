@@ -67,3 +67,10 @@ def test_constant_velocity_baseline_is_exact_for_uniform_motion() -> None:
     frames = start[None] + np.arange(12)[:, None, None] * velocity[None]
     predicted = metrics.constant_velocity_rollout(frames[:6], 6)
     np.testing.assert_allclose(predicted, frames[6:], atol=1e-12)
+
+
+def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
+    traj = load_split(tiny_dataset, "test")[0]
+    fresh = rollout(untrained, traj, 30)
+    reused = rollout(untrained, traj, 30, neighbour_skin=0.02)
+    np.testing.assert_array_equal(reused.predicted, fresh.predicted)

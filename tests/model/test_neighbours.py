@@ -63,3 +63,20 @@ def test_self_edges_and_bad_backend() -> None:
     assert with_loops.shape[1] == without.shape[1] + 20
     with pytest.raises(ValueError, match="unknown neighbour backend"):
         radius_graph(pos, 0.2, backend="kdtree")
+
+
+@pytest.mark.parametrize("self_edges", [False, True])
+def test_verlet_lists_match_a_fresh_search_every_step(self_edges: bool) -> None:
+    from gns_bench.model.neighbours import VerletNeighbours
+
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(0, 1, size=(800, 2))
+    velocity = rng.normal(0, 0.002, size=(800, 2))  # ~R/30 a step, as in the paper's data
+    verlet = VerletNeighbours(0.06, skin=0.03, self_edges=self_edges)
+    for _ in range(60):
+        velocity += rng.normal(0, 0.0002, size=velocity.shape)
+        pos = pos + velocity
+        positions = torch.tensor(pos, dtype=torch.float32)
+        fresh = radius_graph(positions, 0.06, self_edges=self_edges)
+        assert torch.equal(verlet(positions), fresh)
+    assert 1 < verlet.rebuilds < 30, verlet.rebuilds  # reused most steps, rebuilt when particles moved
