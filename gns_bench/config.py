@@ -68,6 +68,7 @@ class TrainConfig:
     log_every: int = 100
     device: str = "auto"  # "auto" picks CUDA when present
     num_threads: int | None = None  # torch CPU threads; None keeps torch's default
+    precision: Literal["fp32", "bf16"] = "fp32"  # bf16: autocast the network (features and loss stay fp32)
 
     def validate(self) -> None:
         _require(self.steps >= 0, "train.steps", "must be >= 0")

@@ -10,7 +10,6 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +18,7 @@ import torch
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import Metadata
 from gns_bench.model import features
+from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator
 
 
@@ -37,12 +37,6 @@ def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Cal
             sync()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
-
-
-def autocast(device: torch.device, precision: str):
-    if precision == "bf16":
-        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
-    return nullcontext()
 
 
 def gemm_peak_gflops(dtype: torch.dtype, device: torch.device, sizes: tuple[int, ...] = (1024, 2048, 4096),

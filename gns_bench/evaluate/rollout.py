@@ -13,7 +13,9 @@ import numpy as np
 import torch
 
 from gns_bench.data.format import Trajectory
+from gns_bench.model import features
 from gns_bench.model.neighbours import VerletNeighbours
+from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 
@@ -53,8 +55,9 @@ class RolloutResult:
 @torch.no_grad()
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
             hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
-            neighbour_skin: float = 0.0) -> RolloutResult:
-    """Roll out from the first W frames. `neighbour_skin` > 0 reuses Verlet neighbour lists (same edges)."""
+            neighbour_skin: float = 0.0, precision: str = "fp32") -> RolloutResult:
+    """Roll out from the first W frames. `neighbour_skin` > 0 reuses Verlet neighbour lists (same edges);
+    `precision` "bf16" autocasts the network (positions and integration stay fp32)."""
     w = simulator.config.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
@@ -73,7 +76,10 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
         frame = w + step
         step_context = context[frame - 1: frame] if context is not None else None
         edges = neighbours(window[:, -1]) if neighbours is not None else None
-        next_position = simulator.predict_next_position(window, particle_type, None, step_context, edges)
+        with autocast(device, precision):
+            acceleration = simulator.denormalise_acceleration(
+                simulator(window, particle_type, None, step_context, edges).float())
+        next_position = features.integrate(window, acceleration)
         next_position = torch.where(kinematic, truth[frame], next_position)
         try:
             for hook in hooks:

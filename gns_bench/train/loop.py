@@ -23,6 +23,7 @@ from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, load_split,
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
+from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
@@ -54,7 +55,7 @@ def resolve_device(name: str) -> torch.device:
 
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
                   position_correction: float, model: torch.nn.Module | None = None,
-                  num_moving: int | None = None, world_size: int = 1) -> torch.Tensor:
+                  num_moving: int | None = None, world_size: int = 1, precision: str = "fp32") -> torch.Tensor:
     """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles.
 
     `model` is what runs the forward pass (the simulator itself, or its DistributedDataParallel wrapper).
@@ -66,7 +67,8 @@ def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise
     noise = position_noise * moving[:, None, None]  # kinematic particles are never noised
     window, target_next = noisy_training_pair(batch.window, batch.target, noise, position_correction)
     target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
-    predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context)
+    with autocast(window.device, precision):
+        predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context).float()
     per_particle = (predicted - target).square().sum(dim=-1)
     denominator = max(int(moving.sum()) if num_moving is None else num_moving, 1)
     return (per_particle * moving).sum() * (world_size / denominator)
@@ -169,7 +171,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             batch, noise, num_moving = step_inputs(sampler, step, tc.batch_size, tc.noise_std, group.rank,
                                                    group.world_size)
             loss = training_loss(simulator, batch.to(device), noise.to(device), tc.position_correction, model,
-                                 num_moving, group.world_size)
+                                 num_moving, group.world_size, tc.precision)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

@@ -74,3 +74,12 @@ def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_da
     fresh = rollout(untrained, traj, 30)
     reused = rollout(untrained, traj, 30, neighbour_skin=0.02)
     np.testing.assert_array_equal(reused.predicted, fresh.predicted)
+
+
+def test_bf16_rollout_stays_close_to_fp32(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
+    traj = load_split(tiny_dataset, "test")[0]
+    fp32 = rollout(untrained, traj, 10)
+    bf16 = rollout(untrained, traj, 10, precision="bf16")
+    assert bf16.predicted.dtype == np.float32
+    difference = np.abs(bf16.predicted - fp32.predicted).max()
+    assert 0 < difference < 1e-3, difference  # rounding shows, but positions do not drift far in 10 steps

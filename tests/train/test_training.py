@@ -53,3 +53,13 @@ def test_resume_refuses_a_different_model(tiny_dataset: Path, tmp_path: Path) ->
     with pytest.raises(ValueError, match="model config differs"):
         train(load_config(None, QUICK + ["train.steps=4", "model.latent_size=32"]), tiny_dataset,
               tmp_path / "run", resume=True, progress=False)
+
+
+def test_bf16_training_tracks_fp32(tiny_dataset: Path, tmp_path: Path) -> None:
+    runs = {}
+    for precision in ("fp32", "bf16"):
+        config = load_config(None, QUICK + ["train.steps=5", f"train.precision={precision}"])
+        runs[precision] = train(config, tiny_dataset, tmp_path / precision, progress=False).losses
+    assert runs["fp32"] != runs["bf16"]  # bf16 really ran
+    first_fp32, first_bf16 = runs["fp32"][0], runs["bf16"][0]
+    assert abs(first_bf16 - first_fp32) / first_fp32 < 0.05
