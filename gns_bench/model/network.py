@@ -10,7 +10,9 @@
 The first layer of phi_e is applied as per-node projections gathered per edge,
 W [e, v_s, v_r] = W_e e + (W_s v)[s] + (W_r v)[r], which is the same function as the concatenated
 form with fewer FLOPs (E >> N); the weights are stored as one Linear so both forms share parameters.
-Sum aggregation uses PyTorch Geometric's scatter.
+Sum aggregation: when the edges are sorted by receiver (as `radius_graph` returns them) it is a segment
+sum over contiguous runs, faster than a scatter (measured by `gns-bench bench`); otherwise PyTorch
+Geometric's scatter.
 """
 
 from __future__ import annotations
@@ -32,6 +34,21 @@ def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int,
     if layer_norm:
         layers.append(nn.LayerNorm(out_size))
     return nn.Sequential(*layers)
+
+
+def sorted_in_degree(receivers: torch.Tensor, num_nodes: int) -> torch.Tensor | None:
+    """Edges per receiver when the edges are sorted by receiver (segment sums apply), else None."""
+    if receivers.numel() > 1 and not bool(torch.all(receivers[1:] >= receivers[:-1])):
+        return None
+    return torch.bincount(receivers, minlength=num_nodes)
+
+
+def aggregate(edges: torch.Tensor, receivers: torch.Tensor, num_nodes: int,
+              in_degree: torch.Tensor | None = None) -> torch.Tensor:
+    """Sum of incoming edge latents per node; `in_degree` from `sorted_in_degree` enables segment sums."""
+    if in_degree is not None:
+        return torch.segment_reduce(edges, "sum", lengths=in_degree, axis=0, unsafe=True)
+    return scatter(edges, receivers, dim=0, dim_size=num_nodes, reduce="sum")
 
 
 class InteractionNetwork(nn.Module):
@@ -67,13 +84,14 @@ class InteractionNetwork(nn.Module):
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
                 globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None,
-                update_globals: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+                update_globals: bool = True, in_degree: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         node_globals = edge_globals = None
         if self.global_latent:
             node_globals = globals_.index_select(0, node_graph)
             edge_globals = node_globals.index_select(0, edge_index[1])
         new_edges = edges + self.edge_update(nodes, edges, edge_index, edge_globals)
-        aggregated = scatter(new_edges, edge_index[1], dim=0, dim_size=nodes.shape[0], reduce="sum")
+        aggregated = aggregate(new_edges, edge_index[1], nodes.shape[0], in_degree)
         node_inputs = [nodes, aggregated] + ([node_globals] if self.global_latent else [])
         new_nodes = nodes + self.node_mlp(torch.cat(node_inputs, dim=1))
         new_globals = globals_
@@ -138,7 +156,9 @@ class EncodeProcessDecode(nn.Module):
                 globals_ = self.global_encoder(global_features)
             else:
                 globals_ = self.global_constant.expand(num_graphs, -1)
+        in_degree = sorted_in_degree(edge_index[1], nodes.shape[0])
         for step, index in enumerate(self.schedule):
             nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph,
-                                                           update_globals=step < len(self.schedule) - 1)
+                                                           update_globals=step < len(self.schedule) - 1,
+                                                           in_degree=in_degree)
         return self.decoder(nodes)
