@@ -18,6 +18,7 @@ import torch
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import Metadata
 from gns_bench.model import features
+from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator
 
@@ -115,6 +116,7 @@ class RolloutBreakdown:
     gnn_s: float
     integration_s: float
     num_edges: int
+    verlet_search_s: float = 0.0  # amortised search time a step with Verlet lists (skin R/2) over 20 steps
 
     @property
     def total_s(self) -> float:
@@ -148,7 +150,18 @@ def rollout_breakdown(simulator: LearnedSimulator, scene: Scene, device: torch.d
         out = simulator.network(x, e, edges).float()
     integrate = timed(lambda: features.integrate(window, simulator.denormalise_acceleration(out)), repeats,
                       sync=sync)
-    return RolloutBreakdown(search, feature_time, gnn, integrate, int(edges.shape[1]))
+    return RolloutBreakdown(search, feature_time, gnn, integrate, int(edges.shape[1]),
+                            verlet_search_seconds(simulator, window))
+
+
+def verlet_search_seconds(simulator: LearnedSimulator, window: torch.Tensor, steps: int = 20) -> float:
+    """Search time a step with Verlet lists while the scene drifts at its own velocities."""
+    verlet = VerletNeighbours(simulator.radius, simulator.radius / 2, simulator.config.neighbour_backend)
+    velocity = window[:, -1] - window[:, -2]
+    start = time.perf_counter()
+    for step in range(steps):
+        verlet(window[:, -1] + step * velocity)
+    return (time.perf_counter() - start) / steps
 
 
 def train_step_seconds(simulator: LearnedSimulator, scene: Scene, device: torch.device, precision: str = "fp32",

@@ -81,6 +81,7 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
     lines += _table(results["inference"], [("domain", "domain", ""), ("precision", "precision", ""),
                                            ("particles", "N", "d"), ("edges", "edges", "d"),
                                            ("step_s", "step s", ".4f"), ("neighbour_search_s", "search s", ".4f"),
+                                           ("verlet_search_s", "search s (Verlet)", ".4f"),
                                            ("features_s", "features s", ".4f"), ("gnn_s", "GNN s", ".4f"),
                                            ("search_and_graph_share", "search + graph share", ".1%")])
     lines += ["", "## Scaling in particle count (fp32 rollout step, fresh process each)", ""]

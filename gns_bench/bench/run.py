@@ -102,6 +102,7 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
             rows.append({"domain": domain, "dim": dim, "precision": precision, "particles": particles,
                          "edges": b.num_edges, "step_s": b.total_s, "neighbour_search_s": b.neighbour_search_s,
                          "features_s": b.features_s, "gnn_s": b.gnn_s, "integration_s": b.integration_s,
+                         "verlet_search_s": b.verlet_search_s,
                          "search_share": b.neighbour_search_s / b.total_s,
                          "search_and_graph_share": (b.neighbour_search_s + b.features_s) / b.total_s})
     return rows

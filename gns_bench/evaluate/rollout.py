@@ -14,7 +14,7 @@ import torch
 
 from gns_bench.data.format import Trajectory
 from gns_bench.model import features
-from gns_bench.model.neighbours import VerletNeighbours
+from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
@@ -55,9 +55,14 @@ class RolloutResult:
 @torch.no_grad()
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
             hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
-            neighbour_skin: float = 0.0, precision: str = "fp32") -> RolloutResult:
-    """Roll out from the first W frames. `neighbour_skin` > 0 reuses Verlet neighbour lists (same edges);
-    `precision` "bf16" autocasts the network (positions and integration stay fp32)."""
+            neighbour_skin: float = 0.0, precision: str = "fp32", reuse_static_edges: bool = True
+            ) -> RolloutResult:
+    """Roll out from the first W frames; every option below gives the same edges as a fresh search.
+
+    neighbour_skin > 0: Verlet neighbour lists, rebuilt only when particles moved skin / 2.
+    reuse_static_edges: edges among particles that never move (fixed boundaries) are found once.
+    precision "bf16": autocast the network (positions and integration stay fp32).
+    """
     w = simulator.config.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
@@ -69,9 +74,13 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     window = truth[:w].transpose(0, 1).contiguous()  # [N, W, D]
     predicted, stopped_at, reason = [], None, None
     neighbours = None
+    static = (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic[:, 0]
     if neighbour_skin > 0 and simulator.network.uses_edges:
         neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.config.neighbour_backend,
                                       simulator.config.self_edges)
+    elif reuse_static_edges and simulator.network.uses_edges and bool(static.any()) and not bool(static.all()):
+        neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.config.neighbour_backend,
+                                           simulator.config.self_edges)
     for step in range(num_steps):
         frame = w + step
         step_context = context[frame - 1: frame] if context is not None else None

@@ -171,3 +171,43 @@ def radius_graph_from(senders: torch.Tensor, receivers: torch.Tensor, n: int, de
     """Add self-loops to filtered edges and restore the canonical order."""
     loops = torch.arange(n, device=device)
     return _sorted(torch.cat([senders, loops]), torch.cat([receivers, loops]), n)
+
+
+class StaticAwareNeighbours:
+    """Neighbour search that finds the edges among static particles (fixed boundaries and obstacles)
+    once per rollout: each step only searches pairs with at least one moving particle. Same edges, same
+    order as a fresh search. The saving is in the scipy backend (a k-d tree over the static particles
+    is built once); other backends search everything each step.
+    """
+
+    def __init__(self, static_position: torch.Tensor, static_mask: torch.Tensor, radius: float,
+                 backend: str = "scipy", self_edges: bool = False):
+        self.radius, self.backend, self.self_edges = radius, backend, self_edges
+        self.static_mask = static_mask
+        self.static_index = torch.nonzero(static_mask).flatten()
+        self.moving_index = torch.nonzero(~static_mask).flatten()
+        self.static_position = static_position.detach()
+        static = radius_graph(self.static_position[self.static_index], radius, backend=backend)
+        self.static_edges = self.static_index[static]  # [2, E_ss] in global indices, found once
+        self._static_tree = cKDTree(self.static_position[self.static_index].cpu().numpy().astype(np.float64))
+
+    def __call__(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        if batch is not None and int(batch.max()) > 0:
+            raise ValueError("StaticAwareNeighbours handles one graph")
+        if self.backend != "scipy":
+            return radius_graph(positions, self.radius, backend=self.backend, self_edges=self.self_edges)
+        positions = positions.detach()
+        moving = self.moving_index
+        mm = self.moving_index[radius_graph(positions[moving], self.radius * _SEARCH_SLACK, backend="scipy")]
+        tree = cKDTree(positions[moving].cpu().numpy().astype(np.float64))
+        pairs = tree.sparse_distance_matrix(self._static_tree, self.radius * _SEARCH_SLACK, output_type="ndarray")
+        m = moving[torch.from_numpy(pairs["i"].astype(np.int64)).to(moving.device)]
+        s = self.static_index[torch.from_numpy(pairs["j"].astype(np.int64)).to(moving.device)]
+        senders = torch.cat([mm[0], m, s])
+        receivers = torch.cat([mm[1], s, m])
+        senders, receivers = _exact_filter(positions, senders, receivers, self.radius)
+        senders = torch.cat([senders, self.static_edges[0]])
+        receivers = torch.cat([receivers, self.static_edges[1]])
+        if self.self_edges:
+            return radius_graph_from(senders, receivers, positions.shape[0], positions.device)
+        return _sorted(senders, receivers, positions.shape[0])

@@ -83,3 +83,11 @@ def test_bf16_rollout_stays_close_to_fp32(untrained: LearnedSimulator, tiny_data
     assert bf16.predicted.dtype == np.float32
     difference = np.abs(bf16.predicted - fp32.predicted).max()
     assert 0 < difference < 1e-3, difference  # rounding shows, but positions do not drift far in 10 steps
+
+
+def test_static_edge_reuse_changes_nothing(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
+    traj = load_split(tiny_dataset, "test")[0]
+    assert (traj.position == traj.position[:1]).all(axis=(0, 2)).sum() == 11  # the static floor row
+    reused = rollout(untrained, traj, 20)
+    fresh = rollout(untrained, traj, 20, reuse_static_edges=False)
+    np.testing.assert_array_equal(reused.predicted, fresh.predicted)

@@ -80,3 +80,20 @@ def test_verlet_lists_match_a_fresh_search_every_step(self_edges: bool) -> None:
         fresh = radius_graph(positions, 0.06, self_edges=self_edges)
         assert torch.equal(verlet(positions), fresh)
     assert 1 < verlet.rebuilds < 30, verlet.rebuilds  # reused most steps, rebuilt when particles moved
+
+
+def test_static_aware_search_matches_a_fresh_search() -> None:
+    from gns_bench.model.neighbours import StaticAwareNeighbours
+
+    rng = np.random.default_rng(6)
+    floor = np.stack([np.linspace(0, 1, 200), np.zeros(200)], axis=1)  # a static boundary row
+    fluid = rng.uniform([0, 0], [1, 0.3], size=(500, 2))
+    pos = np.concatenate([fluid, floor]).astype(np.float32)
+    static = torch.zeros(700, dtype=torch.bool)
+    static[500:] = True
+    search = StaticAwareNeighbours(torch.from_numpy(pos), static, 0.04)
+    assert search.static_edges.shape[1] > 0
+    for _ in range(5):
+        pos[:500] += rng.normal(0, 0.005, size=(500, 2)).astype(np.float32)
+        positions = torch.from_numpy(pos)
+        assert torch.equal(search(positions), radius_graph(positions, 0.04))
