@@ -46,6 +46,7 @@ class RolloutResult:
     particle_type: np.ndarray  # [N]
     stopped_at: int | None = None
     stop_reason: str | None = None
+    stopped_by: RolloutStopped | None = None  # the exception a hook raised (a monitor carries its details)
 
     @property
     def moving_mask(self) -> np.ndarray:
@@ -72,7 +73,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     context = (torch.from_numpy(trajectory.step_context).to(device)
                if trajectory.step_context is not None else None)
     window = truth[:w].transpose(0, 1).contiguous()  # [N, W, D]
-    predicted, stopped_at, reason = [], None, None
+    predicted, stopped_at, reason, stopped_by = [], None, None, None
     neighbours = None
     static = (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic[:, 0]
     if neighbour_skin > 0 and simulator.network.uses_edges:
@@ -94,7 +95,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
             for hook in hooks:
                 hook(RolloutState(step, frame, next_position, window))
         except RolloutStopped as stop:
-            stopped_at, reason = step, stop.reason
+            stopped_at, reason, stopped_by = step, stop.reason, stop
             break
         predicted.append(next_position)
         window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
@@ -102,4 +103,4 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     stacked = (torch.stack(predicted).cpu().numpy() if predicted
                else np.zeros((0, trajectory.num_particles, dim), dtype=np.float32))
     return RolloutResult(stacked, trajectory.position[w: w + num_steps], trajectory.position[:w],
-                         trajectory.particle_type, stopped_at, reason)
+                         trajectory.particle_type, stopped_at, reason, stopped_by)

@@ -1,0 +1,123 @@
+"""Rollout health monitors: hooks that stop a rollout the moment it produces garbage.
+
+Each monitor looks at the newly predicted positions and raises `MonitorTripped` (a `RolloutStopped`)
+naming itself, the step, the value it saw and its threshold; the rollout keeps the state where it
+tripped. The paper's failure modes this catches: NaN/inf, particles escaping the container, kinetic
+energy blowing up, and particles collapsing onto each other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from gns_bench.evaluate.rollout import RolloutState, RolloutStopped
+
+
+class MonitorTripped(RolloutStopped):
+    def __init__(self, monitor: str, step: int, value: float, threshold: float, detail: str,
+                 position: np.ndarray):
+        super().__init__(f"{monitor} at step {step}: {detail}")
+        self.monitor, self.step, self.value, self.threshold = monitor, step, value, threshold
+        self.position = position
+
+
+def kinetic_energy(velocity: torch.Tensor | np.ndarray) -> float:
+    """Mean kinetic energy per particle, unit mass, in stored-frame units: 0.5 <|v|^2>."""
+    v = velocity.detach().cpu().numpy() if isinstance(velocity, torch.Tensor) else velocity
+    return float(0.5 * np.mean(np.sum(np.asarray(v, dtype=np.float64) ** 2, axis=-1)))
+
+
+@dataclass
+class FiniteMonitor:
+    """Trips on any NaN or inf position."""
+
+    name: str = "non_finite"
+
+    def __call__(self, state: RolloutState) -> None:
+        finite = torch.isfinite(state.position).all(dim=1)
+        if not bool(finite.all()):
+            bad = int((~finite).sum())
+            raise MonitorTripped(self.name, state.step, float(bad), 0.0, f"{bad} particles with NaN or inf",
+                                 state.position.cpu().numpy())
+
+
+@dataclass
+class BoundsMonitor:
+    """Trips when a particle leaves the bounds by more than `margin` (a length, e.g. a few R)."""
+
+    bounds: np.ndarray  # [D, 2]
+    margin: float
+    name: str = "out_of_bounds"
+
+    def __call__(self, state: RolloutState) -> None:
+        p = state.position.detach().cpu().numpy()
+        bounds = np.asarray(self.bounds)
+        excess = np.maximum(bounds[:, 0] - p, p - bounds[:, 1]).max()
+        if excess > self.margin:
+            raise MonitorTripped(self.name, state.step, float(excess), self.margin,
+                                 f"a particle is {excess:.3g} outside the bounds (margin {self.margin:.3g})", p)
+
+
+@dataclass
+class EnergyMonitor:
+    """Trips when the moving particles' kinetic energy exceeds `factor` x the larger of the initial
+    state's, the ground truth's at that step (when given) and a floor (motion of R/10 a step), so a
+    scene at rest cannot trip it on noise."""
+
+    moving: torch.Tensor  # [N] bool
+    initial_energy: float
+    radius: float
+    factor: float = 10.0
+    reference: np.ndarray | None = None  # [K] ground-truth kinetic energy per rollout step
+    name: str = "energy_blowup"
+
+    def __call__(self, state: RolloutState) -> None:
+        velocity = (state.position - state.window[:, -1])[self.moving]
+        energy = kinetic_energy(velocity)
+        reference = max(self.initial_energy, 0.5 * (self.radius / 10) ** 2)
+        if self.reference is not None and state.step < len(self.reference):
+            reference = max(reference, float(self.reference[state.step]))
+        if not energy <= self.factor * reference:  # also trips on NaN energy
+            raise MonitorTripped(self.name, state.step, energy, self.factor * reference,
+                                 f"kinetic energy {energy:.3g} > {self.factor:g} x reference {reference:.3g}",
+                                 state.position.cpu().numpy())
+
+
+@dataclass
+class DensityMonitor:
+    """Trips when more than `max_share` of the moving particles have a neighbour closer than
+    `fraction` x R (local density collapse); checked every `every` steps to stay cheap."""
+
+    moving: torch.Tensor
+    radius: float
+    fraction: float = 0.05
+    max_share: float = 0.1
+    every: int = 10
+    name: str = "density_collapse"
+
+    def __call__(self, state: RolloutState) -> None:
+        if state.step % self.every:
+            return
+        p = state.position.detach().cpu().numpy().astype(np.float64)
+        if not np.all(np.isfinite(p)):
+            return  # FiniteMonitor's business
+        moving = self.moving.cpu().numpy()
+        distance, _ = cKDTree(p).query(p[moving], k=2)
+        share = float(np.mean(distance[:, 1] < self.fraction * self.radius))
+        if share > self.max_share:
+            raise MonitorTripped(self.name, state.step, share, self.max_share,
+                                 f"{share:.1%} of particles within {self.fraction:g} R of another", p)
+
+
+def default_monitors(bounds: Sequence[Sequence[float]], radius: float, initial_window: torch.Tensor,
+                     moving: torch.Tensor, reference_energy: np.ndarray | None = None) -> list:
+    """The monitors every rollout runs: finite, within bounds (margin 3 R), energy (10x), density."""
+    initial = kinetic_energy((initial_window[:, -1] - initial_window[:, -2])[moving])
+    return [FiniteMonitor(), BoundsMonitor(np.asarray(bounds, dtype=np.float64), 3 * radius),
+            EnergyMonitor(moving, initial, radius, reference=reference_energy),
+            DensityMonitor(moving, radius)]

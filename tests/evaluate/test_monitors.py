@@ -1,0 +1,108 @@
+"""Each health monitor trips on a constructed bad state and not on a good one; a NaN stops a rollout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gns_bench.config import ModelConfig
+from gns_bench.data.format import load_split, read_metadata
+from gns_bench.evaluate.monitors import (
+    BoundsMonitor,
+    DensityMonitor,
+    EnergyMonitor,
+    FiniteMonitor,
+    MonitorTripped,
+    default_monitors,
+)
+from gns_bench.evaluate.rollout import RolloutState, rollout
+from gns_bench.model.simulator import LearnedSimulator
+
+R = 0.05
+
+
+def state(position: np.ndarray, previous: np.ndarray | None = None, step: int = 0) -> RolloutState:
+    previous = position if previous is None else previous
+    window = torch.tensor(np.stack([previous] * 6, axis=1), dtype=torch.float32)
+    return RolloutState(step, step + 6, torch.tensor(position, dtype=torch.float32), window)
+
+
+@pytest.fixture
+def grid() -> np.ndarray:
+    axis = np.linspace(0.2, 0.8, 15)
+    return np.stack(np.meshgrid(axis, axis), -1).reshape(-1, 2)  # spacing ~0.043, below R
+
+
+def test_finite_monitor(grid: np.ndarray) -> None:
+    FiniteMonitor()(state(grid))
+    bad = grid.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(MonitorTripped, match="non_finite at step 3: 1 particles"):
+        FiniteMonitor()(state(bad, step=3))
+
+
+def test_bounds_monitor(grid: np.ndarray) -> None:
+    monitor = BoundsMonitor(np.array([[0.0, 1.0], [0.0, 1.0]]), margin=3 * R)
+    monitor(state(grid))
+    slightly_out = grid.copy()
+    slightly_out[0] = [-0.1, 0.5]  # within the margin
+    monitor(state(slightly_out))
+    far_out = grid.copy()
+    far_out[0] = [0.5, 1.4]
+    with pytest.raises(MonitorTripped) as info:
+        monitor(state(far_out))
+    assert info.value.monitor == "out_of_bounds" and info.value.value == pytest.approx(0.4, abs=1e-6)
+
+
+def test_energy_monitor(grid: np.ndarray) -> None:
+    moving = torch.ones(len(grid), dtype=torch.bool)
+    step = np.full_like(grid, 0.002)  # R/25 a frame, like the paper's data
+    monitor = EnergyMonitor(moving, initial_energy=0.5 * float((step**2).sum(1).mean()), radius=R)
+    monitor(state(grid + step, grid))
+    monitor(state(grid, grid))  # at rest: never trips (the floor)
+    with pytest.raises(MonitorTripped, match="energy_blowup"):
+        monitor(state(grid + 30 * step, grid))
+    # a ground-truth reference with that energy at this step allows it
+    fast = 0.5 * float(((30 * step) ** 2).sum(1).mean())
+    EnergyMonitor(moving, monitor.initial_energy, R, reference=np.array([fast]))(state(grid + 30 * step, grid))
+
+
+def test_density_monitor(grid: np.ndarray) -> None:
+    moving = torch.ones(len(grid), dtype=torch.bool)
+    monitor = DensityMonitor(moving, R)
+    monitor(state(grid))
+    collapsed = grid.copy()
+    half = len(grid) // 2
+    collapsed[:half] = grid[half: 2 * half] + 1e-4  # half the particles onto others
+    with pytest.raises(MonitorTripped, match="density_collapse"):
+        monitor(state(collapsed))
+    DensityMonitor(moving, R, every=10)(state(collapsed, step=5))  # not a checking step
+
+
+def test_injected_nan_stops_the_rollout_at_that_step(tiny_dataset: Path) -> None:
+    torch.manual_seed(0)
+    meta = read_metadata(tiny_dataset)
+    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+                                 3e-4).eval()
+    traj = load_split(tiny_dataset, "test")[0]
+    calls = {"n": 0}
+    forward = simulator.forward
+
+    def poisoned(*args, **kwargs):
+        out = forward(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 8:  # the 8th prediction (rollout step 7) goes bad for one particle
+            out = out.clone()
+            out[2, 0] = float("nan")
+        return out
+
+    simulator.forward = poisoned
+    window = torch.from_numpy(traj.position[:6]).transpose(0, 1)
+    moving = torch.from_numpy(traj.particle_type != 3)
+    result = rollout(simulator, traj, hooks=default_monitors(meta.bounds, simulator.radius, window, moving))
+    assert result.stopped_at == 7 and result.predicted.shape[0] == 7
+    assert result.stopped_by.monitor == "non_finite" and np.isnan(result.stopped_by.position).any()
+    assert np.isfinite(result.predicted).all()  # nothing after the bad state was kept
