@@ -14,7 +14,7 @@ Both validate everything through the loader before the dataset is renamed into p
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -88,20 +88,8 @@ def _tfrecord_trajectories(path: Path, dim: int) -> Iterator[Trajectory]:
 
 def import_deepmind(src: str | Path, dst: str | Path, *, overwrite: bool = False) -> Path:
     src = Path(src)
-    raw = _read_source_metadata(src)
-    meta = Metadata.from_json(dict(raw), src / "metadata.json")
-    writer = DatasetWriter(dst, overwrite=overwrite)
-    types_seen: set[int] = set()
-    for split in _REQUIRED:
-        path = src / f"{split}.tfrecord"
-        if not path.is_file():
-            raise DatasetError(path, "no such file")
-        skipped = writer.count(split)  # resume: skip what an interrupted import already wrote
-        for index, traj in enumerate(_tfrecord_trajectories(path, meta.dim)):
-            types_seen.update(np.unique(traj.particle_type).tolist())
-            if index >= skipped:
-                writer.add(split, traj)
-    return _finish(writer, raw, src, src.name, "deepmind", types_seen)
+    dim = Metadata.from_json(_read_source_metadata(src), src / "metadata.json").dim
+    return _import(src, dst, overwrite, "tfrecord", lambda path: _tfrecord_trajectories(path, dim), "deepmind")
 
 
 def _npz_trajectories(path: Path) -> Iterator[Trajectory]:
@@ -127,17 +115,22 @@ def _npz_trajectories(path: Path) -> Iterator[Trajectory]:
 
 
 def import_npz(src: str | Path, dst: str | Path, *, overwrite: bool = False) -> Path:
-    src = Path(src)
+    return _import(Path(src), dst, overwrite, "npz", _npz_trajectories, "npz")
+
+
+def _import(src: Path, dst: str | Path, overwrite: bool, suffix: str,
+            read: Callable[[Path], Iterator[Trajectory]], importer: str) -> Path:
+    """Copy every split's trajectories into a new dataset; an interrupted import resumes where it stopped."""
     raw = _read_source_metadata(src)
     writer = DatasetWriter(dst, overwrite=overwrite)
     types_seen: set[int] = set()
     for split in _REQUIRED:
-        path = src / f"{split}.npz"
+        path = src / f"{split}.{suffix}"
         if not path.is_file():
             raise DatasetError(path, "no such file")
         skipped = writer.count(split)
-        for index, traj in enumerate(_npz_trajectories(path)):
+        for index, traj in enumerate(read(path)):
             types_seen.update(np.unique(traj.particle_type).tolist())
             if index >= skipped:
                 writer.add(split, traj)
-    return _finish(writer, raw, src, src.name, "npz", types_seen)
+    return _finish(writer, raw, src, src.name, importer, types_seen)
