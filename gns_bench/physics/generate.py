@@ -1,0 +1,156 @@
+"""Generate a whole dataset of one domain at one tier: train/valid/test and `metadata.json`.
+
+Each trajectory's randomness comes from its own generator seeded by (domain, seed, split, index), so a
+run cut off and resumed (DatasetWriter keeps the complete trajectories of `<out>.partial/`) produces
+exactly the files an uninterrupted run would. Statistics are computed from the generated train split.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gns_bench.data.format import SPLITS, DatasetWriter, Metadata, Trajectory, iter_split
+from gns_bench.data.statistics import compute_statistics
+from gns_bench.physics.spec import DomainSpec, load_domain_spec
+
+GENERATOR_NAME = "gns-bench"
+MAX_ATTEMPTS = 3  # initial conditions drawn per trajectory before a blow-up stops the generation
+SOLVER_MODULES = {"mpm": "gns_bench.physics.mpm", "sph": "gns_bench.physics.sph",
+                  "pbd": "gns_bench.physics.pbd"}
+
+
+class GenerationError(RuntimeError):
+    """A trajectory could not be generated (the solver failed or returned bad data); nothing was written."""
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("gns-bench")
+    except Exception:
+        return "0+unknown"
+
+
+def trajectory_rng(domain: str, seed: int, split: str, index: int, attempt: int = 0) -> np.random.Generator:
+    """The generator of one trajectory: independent of how many trajectories were generated before."""
+    entropy = [zlib.crc32(domain.encode()), seed, SPLITS.index(split), index]
+    if attempt:
+        entropy.append(attempt)  # a redraw after a failed simulation (see _simulate_with_redraws)
+    return np.random.default_rng(np.random.SeedSequence(entropy))
+
+
+def _simulate_with_redraws(solver: Any, spec: DomainSpec, tier: str, seed: int, split: str, index: int,
+                           where: str, bar: Any) -> Trajectory:
+    """Simulate one trajectory; if it blows up, report it and redraw its initial condition.
+
+    A failed simulation is never written. Redraws come from (seed, split, index, attempt), so a rerun or a
+    resumed run meets the same failures and makes the same redraws; after MAX_ATTEMPTS failures the whole
+    generation stops with every attempt's error. Only simulation failures (RuntimeError, which solvers'
+    SimulationError derive from, and bad output) are redrawn; a spec error fails at once.
+    """
+    tier_spec = spec.tier(tier)
+    failures = []
+    for attempt in range(MAX_ATTEMPTS):
+        rng = trajectory_rng(spec.id, seed, split, index, attempt)
+        try:
+            traj = solver.simulate(spec.for_split(split), tier, rng)
+            check_trajectory(traj, spec, tier_spec.sequence_length, where)
+            return traj
+        except RuntimeError as exc:  # includes GenerationError from the checks
+            failures.append(f"attempt {attempt}: {type(exc).__name__}: {exc}")
+            message = f"{where}: simulation failed, not written ({failures[-1]})"
+            if attempt + 1 < MAX_ATTEMPTS:
+                message += "; redrawing its initial condition"
+            (bar.write if bar is not None else print)(message, file=sys.stderr)
+        except Exception as exc:
+            raise GenerationError(f"{where}: {type(exc).__name__}: {exc}") from exc
+    raise GenerationError(f"{where}: {MAX_ATTEMPTS} attempts failed: " + " | ".join(failures))
+
+
+def check_trajectory(traj: Trajectory, spec: DomainSpec, sequence_length: int, where: str) -> None:
+    """What the solver returned must be what the tier asks for, finite, and inside the bounds."""
+    pos = traj.position
+    expected = (sequence_length + 1, pos.shape[1], spec.dim)
+    if pos.ndim != 3 or pos.shape != expected:
+        raise GenerationError(f"{where}: position has shape {pos.shape}, expected [T, N, D] = {expected}")
+    if traj.particle_type.shape != (pos.shape[1],):
+        raise GenerationError(f"{where}: particle_type has shape {traj.particle_type.shape}, "
+                              f"expected ({pos.shape[1]},)")
+    if not np.all(np.isfinite(pos)):
+        raise GenerationError(f"{where}: NaN or inf in positions (the simulation blew up)")
+    declared = set(spec.particle_types.values())
+    present = set(np.unique(traj.particle_type).tolist())
+    if not present <= declared:
+        raise GenerationError(f"{where}: particle types {sorted(present - declared)} not declared in "
+                              f"{spec.path} particle_types")
+    bounds = np.asarray(spec.bounds)
+    tol = 0.02 * float(np.max(bounds[:, 1] - bounds[:, 0]))
+    if np.any(pos < bounds[:, 0] - tol) or np.any(pos > bounds[:, 1] + tol):
+        raise GenerationError(f"{where}: particles left the bounds {bounds.tolist()} (span "
+                              f"{pos.min(axis=(0, 1)).tolist()} to {pos.max(axis=(0, 1)).tolist()})")
+    if (spec.context is None) != (traj.step_context is None):
+        raise GenerationError(f"{where}: step_context must be given exactly when the spec has [context]")
+
+
+def default_out(domain: str, tier: str, seed: int) -> Path:
+    return Path("data") / f"{domain}-{tier}-s{seed}"
+
+
+def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | None = None,
+                     progress: bool = True) -> Path:
+    """Generate (or resume, or return unchanged if complete) `out`, default `data/<domain>-<tier>-s<seed>`."""
+    spec = load_domain_spec(domain)
+    tier_spec = spec.tier(tier)
+    out = Path(out) if out is not None else default_out(domain, tier, seed)
+    if (out / "metadata.json").is_file():
+        return out
+    if out.exists():
+        raise FileExistsError(f"{out} exists but holds no metadata.json: not a complete dataset; remove it")
+    solver = importlib.import_module(SOLVER_MODULES[spec.solver])
+    writer = DatasetWriter(out)
+    total = sum(tier_spec.trajectories.values())
+    done = sum(writer.count(split) for split in SPLITS)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=done, desc=f"{domain}/{tier}", unit="traj", file=sys.stderr)
+    start, particles = time.perf_counter(), []
+    for split in SPLITS:
+        for index in range(writer.count(split), tier_spec.trajectories[split]):
+            where = f"{domain} tier {tier} seed {seed}, {split} trajectory {index}"
+            traj = _simulate_with_redraws(solver, spec, tier, seed, split, index, where, bar)
+            writer.add(split, traj)
+            particles.append(traj.num_particles)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(particles=traj.num_particles)
+    if bar is not None:
+        bar.close()
+
+    stats = compute_statistics(iter_split(writer.partial_dir, "train"))
+    meta = Metadata(
+        bounds=spec.bounds, sequence_length=tier_spec.sequence_length,
+        default_connectivity_radius=spec.connectivity_radius, dim=spec.dim, dt=spec.dt, **stats,
+        name=spec.name, particle_types=dict(spec.particle_types), walls=spec.walls,
+        gravity=spec.gravity_per_step2,
+        generator={"name": GENERATOR_NAME, "version": _version(), "domain": domain, "tier": tier,
+                   "seed": seed, "solver": spec.solver},
+    )
+    path = writer.finish(meta)
+    if progress:
+        seconds = time.perf_counter() - start
+        summary = (f"{domain}/{tier} seed {seed}: {len(particles)} trajectories generated "
+                   f"({total - len(particles)} resumed), {tier_spec.sequence_length} steps each")
+        if particles:
+            summary += f", {min(particles)}-{max(particles)} particles"
+        print(f"{summary}, {seconds:.1f} s -> {path}", file=sys.stderr)
+    return path
