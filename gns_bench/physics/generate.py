@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from gns_bench.data.format import SPLITS, DatasetWriter, Metadata, Trajectory, iter_split
+from gns_bench.data.generate import dataset_path
 from gns_bench.data.statistics import compute_statistics
 from gns_bench.physics.spec import DomainSpec, load_domain_spec
 
@@ -100,16 +101,12 @@ def check_trajectory(traj: Trajectory, spec: DomainSpec, sequence_length: int, w
         raise GenerationError(f"{where}: step_context must be given exactly when the spec has [context]")
 
 
-def default_out(domain: str, tier: str, seed: int) -> Path:
-    return Path("data") / f"{domain}-{tier}-s{seed}"
-
-
 def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | None = None,
                      progress: bool = True) -> Path:
     """Generate (or resume, or return unchanged if complete) `out`, default `data/<domain>-<tier>-s<seed>`."""
     spec = load_domain_spec(domain)
     tier_spec = spec.tier(tier)
-    out = Path(out) if out is not None else default_out(domain, tier, seed)
+    out = Path(out) if out is not None else dataset_path(domain, tier, seed)
     if (out / "metadata.json").is_file():
         return out
     if out.exists():
