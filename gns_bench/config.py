@@ -92,6 +92,17 @@ class EvalConfig:
     max_trajectories: int | None = None  # None: every trajectory of the split
     rollout_steps: int | None = None  # None: to the end of each trajectory
     one_step_windows: int | None = None  # windows per trajectory for one-step MSE; None: all
+    # Distributional metrics (paper App. B.4): MMD and optimal transport between the predicted and true
+    # clouds of moving particles, at `distribution_steps` evenly spaced rollout steps (the last included).
+    distribution_steps: int = 10
+    distribution_max_particles: int | None = 8000  # larger clouds: a fixed uniform subsample (same particles)
+    mmd_bandwidth_radii: float = 2.0  # Gaussian kernel width h = this x connectivity radius R
+    ot_exact_max_particles: int = 4000  # exact EMD up to this many particles, Sinkhorn divergence beyond
+    sinkhorn_reg: float = 1e-4  # entropic regularisation, squared position units (blur ~ sqrt = 0.01 ~ R in 2D)
+    # Rollouts: health monitors (always on unless switched off), Verlet lists, reduced precision.
+    monitors: bool = True  # stop a rollout on NaN/inf, escape from the bounds, energy blow-up, density collapse
+    neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
+    precision: Literal["fp32", "bf16"] = "fp32"  # bf16: autocast the network in rollouts
 
     def validate(self) -> None:
         _require(self.max_trajectories is None or self.max_trajectories >= 1, "eval.max_trajectories",
@@ -99,6 +110,13 @@ class EvalConfig:
         _require(self.rollout_steps is None or self.rollout_steps >= 1, "eval.rollout_steps", "must be >= 1")
         _require(self.one_step_windows is None or self.one_step_windows >= 1, "eval.one_step_windows",
                  "must be >= 1")
+        _require(self.distribution_steps >= 0, "eval.distribution_steps", "must be >= 0 (0 turns them off)")
+        _require(self.distribution_max_particles is None or self.distribution_max_particles >= 2,
+                 "eval.distribution_max_particles", "must be >= 2")
+        _require(self.mmd_bandwidth_radii > 0, "eval.mmd_bandwidth_radii", "must be > 0")
+        _require(self.ot_exact_max_particles >= 1, "eval.ot_exact_max_particles", "must be >= 1")
+        _require(self.sinkhorn_reg > 0, "eval.sinkhorn_reg", "must be > 0")
+        _require(self.neighbour_skin >= 0, "eval.neighbour_skin", "must be >= 0")
 
 
 @dataclass

@@ -8,10 +8,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gns_bench import tracking
 from gns_bench.config import Config, EvalConfig
 from gns_bench.data.format import load_split, read_metadata
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
+from gns_bench.evaluate.monitors import MonitorTripped
 from gns_bench.evaluate.plots import plot_rollout
 from gns_bench.train.loop import load_simulator, resolve_device, train
 
@@ -39,6 +42,14 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
     """Rollouts (npz), per-trajectory metrics (csv) and pictures of the best and worst rollouts."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [save_rollouts(evaluation, out_dir / f"{prefix}_rollouts.npz")]
+    tripped = {f"{i:05d}": r.stopped_by for i, r in enumerate(evaluation.rollouts)
+               if isinstance(r.stopped_by, MonitorTripped)}
+    if tripped:  # the state each monitor stopped on, with what it saw
+        np.savez_compressed(out_dir / f"{prefix}_monitor_states.npz",
+                            **{f"{key}/position": stop.position for key, stop in tripped.items()},
+                            **{f"{key}/step": np.array(stop.step) for key, stop in tripped.items()},
+                            **{f"{key}/monitor": np.array(stop.monitor) for key, stop in tripped.items()})
+        paths.append(out_dir / f"{prefix}_monitor_states.npz")
     table = out_dir / f"{prefix}_per_trajectory.csv"
     with table.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(evaluation.per_trajectory[0]))
@@ -58,6 +69,7 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
 def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
                     split: str) -> None:
     run.log_metrics({f"{split}/{key}": value for key, value in evaluation.metrics.items()})
+    run.set_tags({f"{split}/{key}": value for key, value in evaluation.tags.items()})
     for path in write_evaluation_artifacts(evaluation, out_dir, bounds, split):
         run.log_artifact(path, "evaluation")
 

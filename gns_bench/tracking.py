@@ -14,6 +14,7 @@ import platform
 import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -152,3 +153,46 @@ def start_run(experiment: str, run_name: str, *, params: dict[str, Any] | None =
         raise
     else:
         mlflow.end_run(status="FINISHED")
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading runs back (reports): plain records, so callers never touch MLflow objects.
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class RunRecord:
+    """One MLflow run as the reports need it: ids, status, params, latest metrics and tags."""
+
+    run_id: str
+    name: str
+    status: str  # FINISHED, FAILED, KILLED, RUNNING
+    start_time: int  # ms since the epoch
+    params: dict[str, str] = field(default_factory=dict)
+    metrics: dict[str, float] = field(default_factory=dict)
+    tags: dict[str, str] = field(default_factory=dict)
+
+
+def search_sweep_runs(experiment: str, tier: str | None = None) -> list[RunRecord]:
+    """Every (not deleted) run of an experiment, newest first; only those tagged `tier` when given.
+    An experiment that does not exist has no runs."""
+    mlflow = _mlflow()
+    if mlflow.get_experiment_by_name(experiment) is None:
+        return []
+    filter_string = f"tags.tier = '{tier}'" if tier else ""
+    runs = mlflow.search_runs(experiment_names=[experiment], filter_string=filter_string, output_format="list",
+                              order_by=["attributes.start_time DESC"])
+    return [RunRecord(r.info.run_id, r.info.run_name or "", r.info.status, int(r.info.start_time or 0),
+                      dict(r.data.params), dict(r.data.metrics), dict(r.data.tags)) for r in runs]
+
+
+def download_artifacts(run_id: str, artifact_path: str, dst: str | Path) -> Path | None:
+    """Copy one artifact (file or folder) of a run into `dst`; None when the run has no such artifact."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # reports print their own output
+    mlflow = _mlflow()
+    Path(dst).mkdir(parents=True, exist_ok=True)
+    try:
+        local = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact_path, dst_path=str(dst),
+                                                    tracking_uri=tracking_uri())
+    except Exception:  # noqa: BLE001 - MLflow raises several types for a missing artifact
+        return None
+    return Path(local)

@@ -1,4 +1,5 @@
-"""Evaluation on a held-out split: one-step MSE, rollout MSE, and the constant-velocity baseline."""
+"""Evaluation on a held-out split: one-step MSE, rollout MSE, the constant-velocity baseline, and the
+distributional metrics (MMD, optimal transport; paper App. B.4) and kinetic-energy error."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import torch
 from tqdm import tqdm
 
 from gns_bench.config import EvalConfig
-from gns_bench.data.format import Trajectory
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import metrics
+from gns_bench.evaluate.monitors import default_monitors
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
@@ -25,6 +27,34 @@ class Evaluation:
     metrics: dict[str, float]
     rollouts: list[RolloutResult] = field(default_factory=list)
     per_trajectory: list[dict[str, float]] = field(default_factory=list)
+    tags: dict[str, str] = field(default_factory=dict)  # e.g. {"ot_method": "emd"}: how a metric was computed
+
+
+def distributional_metrics(result: RolloutResult, config: EvalConfig, radius: float,
+                           device: torch.device | str = "cpu") -> tuple[dict[str, float], str]:
+    """MMD and OT between predicted and true moving-particle clouds, averaged over `config.distribution_steps`
+    evenly spaced rollout steps, plus the kinetic-energy error over every step. Returns (values, OT method)."""
+    k = min(result.predicted.shape[0], result.ground_truth.shape[0])
+    mask = result.moving_mask
+    nan = float("nan")  # every row gets the same keys (the per-trajectory CSV needs them)
+    if k == 0 or not mask.any():
+        return {"kinetic_energy_error": nan, "mmd": nan, "ot": nan, "ot_exact": nan}, ""
+    predicted, truth = result.predicted[:k][:, mask], result.ground_truth[:k][:, mask]
+    values = {"kinetic_energy_error": metrics.kinetic_energy_error(predicted, truth,
+                                                                   result.initial_window[-1][mask])}
+    steps = metrics.evenly_spaced_steps(k, config.distribution_steps)
+    if len(steps) == 0:
+        return {**values, "mmd": nan, "ot": nan, "ot_exact": nan}, ""
+    keep = metrics.subsample_particles(predicted.shape[1], config.distribution_max_particles)
+    bandwidth = config.mmd_bandwidth_radii * radius
+    mmds, ots, method = [], [], ""
+    for step in steps:
+        x, y = predicted[step][keep], truth[step][keep]
+        mmds.append(metrics.mmd(x, y, bandwidth))
+        value, method = metrics.optimal_transport(x, y, config.ot_exact_max_particles, config.sinkhorn_reg, device)
+        ots.append(value)
+    values.update(mmd=float(np.mean(mmds)), ot=float(np.mean(ots)), ot_exact=float(method == "emd"))
+    return values, method
 
 
 @torch.no_grad()
@@ -51,13 +81,19 @@ def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_window
 def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig, *,
              device: torch.device | str = "cpu", hooks: tuple[Hook, ...] = (),
              progress: bool = True) -> Evaluation:
+    """Roll out each trajectory and measure it; `metrics` holds the means over trajectories of every
+    per-trajectory value (`ot_exact` is then the fraction of trajectories whose OT was exact EMD)."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
-    results, per_traj = [], []
+    results, per_traj, methods, stops = [], [], set(), []
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
+        run_hooks = (*hooks, *(health_monitors(simulator, traj, config.rollout_steps) if config.monitors else ()))
         started = time.perf_counter()
-        result = rollout(simulator, traj, config.rollout_steps, hooks, device)
+        result = rollout(simulator, traj, config.rollout_steps, run_hooks, device,
+                         neighbour_skin=config.neighbour_skin, precision=config.precision)
         rollout_seconds = time.perf_counter() - started
+        if result.stopped_by is not None:
+            stops.append(f"trajectory {index}: {result.stop_reason}")
         mask = result.moving_mask
         k = result.predicted.shape[0]
         row = {
@@ -69,9 +105,14 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
                 result.ground_truth, mask),
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
+            "rollout_stopped": float(result.stopped_at is not None),
         }
         for h, value in metrics.mse_at_horizons(result.predicted, result.ground_truth[:k], mask).items():
             row[f"mse_h{h}"] = value
+        distributional, method = distributional_metrics(result, config, simulator.radius, device)
+        row.update(distributional)
+        if method:
+            methods.add(method)
         per_traj.append(row)
         results.append(result)
     summary = {}
@@ -79,7 +120,21 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         if key != "trajectory":
             summary[key] = float(np.mean([row[key] for row in per_traj if key in row]))
     summary["num_trajectories"] = float(len(per_traj))
-    return Evaluation(summary, results, per_traj)
+    tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
+    if stops:  # the report shows where monitors stopped rollouts
+        tags["rollouts_stopped"] = "; ".join(stops)[:5000]
+    return Evaluation(summary, results, per_traj, tags)
+
+
+def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None) -> list:
+    """The default monitors for one trajectory, with its ground-truth kinetic energy as the reference."""
+    w = simulator.config.input_sequence_length
+    truth = trajectory.position[w - 1: w + (num_steps if num_steps is not None else trajectory.num_steps)]
+    moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
+    reference = metrics.kinetic_energy(truth[1:], truth[0], moving) if len(truth) > 1 else None
+    window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1)
+    return default_monitors(simulator.bounds.tolist(), simulator.radius, window, torch.from_numpy(moving),
+                            reference)
 
 
 def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:

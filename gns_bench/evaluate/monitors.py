@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from gns_bench.evaluate.metrics import kinetic_energy
 from gns_bench.evaluate.rollout import RolloutState, RolloutStopped
 
 
@@ -26,10 +27,10 @@ class MonitorTripped(RolloutStopped):
         self.position = position
 
 
-def kinetic_energy(velocity: torch.Tensor | np.ndarray) -> float:
-    """Mean kinetic energy per particle, unit mass, in stored-frame units: 0.5 <|v|^2>."""
-    v = velocity.detach().cpu().numpy() if isinstance(velocity, torch.Tensor) else velocity
-    return float(0.5 * np.mean(np.sum(np.asarray(v, dtype=np.float64) ** 2, axis=-1)))
+def _step_energy(position: torch.Tensor, previous: torch.Tensor, moving: torch.Tensor) -> float:
+    """Kinetic energy of one step (metrics.kinetic_energy, on the moving particles)."""
+    return float(kinetic_energy(position.detach().cpu().numpy()[None], previous.detach().cpu().numpy(),
+                                moving.cpu().numpy())[0])
 
 
 @dataclass
@@ -77,8 +78,7 @@ class EnergyMonitor:
     name: str = "energy_blowup"
 
     def __call__(self, state: RolloutState) -> None:
-        velocity = (state.position - state.window[:, -1])[self.moving]
-        energy = kinetic_energy(velocity)
+        energy = _step_energy(state.position, state.window[:, -1], self.moving)
         reference = max(self.initial_energy, 0.5 * (self.radius / 10) ** 2)
         if self.reference is not None and state.step < len(self.reference):
             reference = max(reference, float(self.reference[state.step]))
@@ -117,7 +117,7 @@ class DensityMonitor:
 def default_monitors(bounds: Sequence[Sequence[float]], radius: float, initial_window: torch.Tensor,
                      moving: torch.Tensor, reference_energy: np.ndarray | None = None) -> list:
     """The monitors every rollout runs: finite, within bounds (margin 3 R), energy (10x), density."""
-    initial = kinetic_energy((initial_window[:, -1] - initial_window[:, -2])[moving])
+    initial = _step_energy(initial_window[:, -1], initial_window[:, -2], moving)
     return [FiniteMonitor(), BoundsMonitor(np.asarray(bounds, dtype=np.float64), 3 * radius),
             EnergyMonitor(moving, initial, radius, reference=reference_energy),
             DensityMonitor(moving, radius)]

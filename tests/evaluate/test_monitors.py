@@ -106,3 +106,38 @@ def test_injected_nan_stops_the_rollout_at_that_step(tiny_dataset: Path) -> None
     assert result.stopped_at == 7 and result.predicted.shape[0] == 7
     assert result.stopped_by.monitor == "non_finite" and np.isnan(result.stopped_by.position).any()
     assert np.isfinite(result.predicted).all()  # nothing after the bad state was kept
+
+
+def test_tripped_monitor_is_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path) -> None:
+    from mlflow.tracking import MlflowClient
+
+    from gns_bench import tracking
+    from gns_bench.config import EvalConfig
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.pipeline import _log_evaluation
+
+    torch.manual_seed(0)
+    meta = read_metadata(tiny_dataset)
+    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+                                 3e-4).eval()
+    forward, calls = simulator.forward, {"n": 0}
+
+    def poisoned(*args, **kwargs):
+        calls["n"] += 1
+        out = forward(*args, **kwargs)
+        return out * float("nan") if calls["n"] == 4 else out
+
+    simulator.forward = poisoned
+    evaluation = evaluate(simulator, load_split(tiny_dataset, "test")[:1], EvalConfig(one_step_windows=1),
+                          progress=False)
+    assert evaluation.metrics["rollout_stopped"] == 1.0
+    with tracking.start_run("monitor-test", "nan") as run:
+        _log_evaluation(run, evaluation, tmp_path, meta.bounds, "test")
+    logged = MlflowClient(tracking_uri=tracking.tracking_uri()).get_run(run.run_id)
+    assert "non_finite at step 3" in logged.data.tags["test/rollouts_stopped"]
+    assert logged.data.metrics["test/rollout_stopped"] == 1.0
+    saved = np.load(tmp_path / "test_monitor_states.npz")
+    assert str(saved["00000/monitor"]) == "non_finite" and int(saved["00000/step"]) == 3
+    moving = load_split(tiny_dataset, "test")[0].particle_type != 3
+    assert np.isnan(saved["00000/position"][moving]).all()  # the bad state itself, as the monitor saw it
+    assert np.isfinite(saved["00000/position"][~moving]).all()  # kinematic particles come from the data

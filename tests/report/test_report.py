@@ -1,0 +1,170 @@
+"""Reports from MLflow: a tiny domain sweep and a 2-value ablation sweep run for real, then reported.
+
+Checks structure, not accuracy: every planned run has a row (missing ones marked), run ids are MLflow's,
+the paper's numbers stand beside ours, and every figure is a readable, small PNG or GIF.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+from PIL import Image
+
+from gns_bench import tracking
+from gns_bench.cli import main
+from gns_bench.report import write_report
+from gns_bench.report.collect import collect, domain_sweeps
+from gns_bench.report.figures import pareto_front
+from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
+from gns_bench.report.report import write_domains_report
+from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
+
+SMOKE = '''
+[tiers.smoke.config.model]
+latent_size = 8
+mlp_hidden_size = 8
+message_passing_steps = 1
+
+[tiers.smoke.config.eval]
+max_trajectories = 2
+'''
+DOMAIN = 'description = "tiny domain"\ndomain = "tiny"\npaper_figure = "Table 1"\n' + SMOKE
+ABLATION = ('description = "noise std on tiny"\ndomain = "tiny"\npaper_figure = "Fig. 4"\n\n[grid]\n'
+            '"train.noise_std" = [0.0, 3e-4, 1e-3]\n' + SMOKE + '\n[tiers.smoke]\nseeds = [0, 1]\n'
+            'grid = { "train.noise_std" = [0.0, 3e-4] }\n')
+MAX_FIGURE_BYTES = 400_000
+DOMAIN_CELLS = 18  # columns of the Knowl 5 table
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Run both sweeps once (6 tiny runs, a few seconds each) into the session's MLflow store."""
+    root = tmp_path_factory.mktemp("report")
+    sweeps = root / "sweeps"
+    for folder, name, text in (("domains", "tiny", DOMAIN), ("ablations", "noise_std", ABLATION)):
+        (sweeps / folder).mkdir(parents=True, exist_ok=True)
+        (sweeps / folder / f"{name}.toml").write_text(text)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", sweeps / "tiers.toml")
+    paths = {"domain": sweeps / "domains" / "tiny.toml", "ablation": sweeps / "ablations" / "noise_std.toml"}
+    for path in paths.values():
+        outcomes = run_sweep(load_sweep(path), "smoke", data_root=root / "data", runs_root=root / "runs",
+                             progress=False, echo=lambda _: None)
+        assert all(o.status == "FINISHED" for o in outcomes), [o.error for o in outcomes]
+    return {**paths, "root": root}
+
+
+def check_figures(readme: Path, expected: set[str]) -> None:
+    """Every expected figure is linked from the README, non-empty, readable and small."""
+    text = readme.read_text()
+    linked = set(re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text))
+    assert expected <= linked, expected - linked
+    for name in linked:
+        path = readme.parent / name
+        assert 0 < path.stat().st_size < MAX_FIGURE_BYTES, (name, path.stat().st_size)
+        if name.endswith(".png"):
+            image = matplotlib.image.imread(path)
+            assert image.ndim == 3 and min(image.shape[:2]) > 50 and image.std() > 0
+        else:
+            with Image.open(path) as gif:
+                assert gif.format == "GIF" and gif.n_frames > 1
+
+
+def table_rows(text: str, first_cell: str, min_cells: int = 0) -> list[list[str]]:
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
+            if line.startswith(f"| {first_cell} ")]
+    return [r for r in rows if len(r) >= min_cells]
+
+
+def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
+    sweep = load_sweep(swept["domain"])
+    readme = write_report(swept["domain"], "smoke", tmp_path)
+    assert readme == tmp_path / "domain-tiny" / "smoke" / "README.md"
+    text = readme.read_text()
+    (run,) = [r for r in tracking.search_sweep_runs(sweep.experiment, "smoke")]
+    (row,) = table_rows(text, "tiny", DOMAIN_CELLS)
+    assert row[-1] == f"`{run.run_id}`" and row[-2] == "ok"
+    assert float(row[8]) == pytest.approx(run.metrics["test/rollout_mse"], rel=1e-2)
+    assert float(row[12]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
+    assert "20 steps" in row[15] and "data tier smoke" in row[15]
+    assert "far below the paper's budget" in text and "20,000,000" in text
+    assert "rollouts of 10 steps" in row[15] and "`eval.rollout_steps` = 10 steps" in text
+    check_figures(readme, {"time_vs_error.png", "rollout_best.png", "rollout_best.gif", "rollout_worst.png",
+                           "rollout_worst.gif"})
+
+
+def test_ablation_sweep_report_marks_missing_values(swept: dict[str, Path], tmp_path: Path) -> None:
+    path = swept["ablation"]
+    path.write_text(path.read_text().replace('[0.0, 3e-4] }', '[0.0, 3e-4, 1e-3] }'))  # 1e-3 never ran
+    readme = write_report(path, "smoke", tmp_path)
+    text = readme.read_text()
+    assert "Paper default: 0.0003" in text
+    rows = {r[0]: r for r in table_rows(text, "0") + table_rows(text, "0.0003") + table_rows(text, "0.001")}
+    assert rows["0"][1] == "2/2" and rows["0.0003"][1] == "2/2" and rows["0.001"][1] == "0/2"
+    assert all(cell == "**missing**" for cell in rows["0.001"][2:])
+    assert all("±" in cell for cell in rows["0"][2:])
+    runs = tracking.search_sweep_runs("sweep:ablation-noise_std", "smoke")
+    assert len(runs) == 4 and all(f"`{r.run_id}`" in text for r in runs)
+    missing_runs = [line for line in text.splitlines() if line.startswith("| noise_std=0.001-seed")]
+    assert len(missing_runs) == 2 and all("**missing**" in line for line in missing_runs)
+    assert "OT method: exact EMD" in text
+    check_figures(readme, {"ablation_noise_std.png", "time_vs_error.png", "rollout_best.gif"})
+
+
+def test_domains_aggregate_keeps_missing_domains(swept: dict[str, Path], tmp_path: Path) -> None:
+    goop = next(s for s in domain_sweeps() if s.name == "domain-goop")
+    readme = write_domains_report([load_sweep(swept["domain"]), goop], "smoke", tmp_path)
+    text = readme.read_text()
+    (tiny,) = table_rows(text, "tiny", DOMAIN_CELLS)
+    (goop_row,) = table_rows(text, "GOOP", DOMAIN_CELLS)
+    assert tiny[-2] == "ok" and goop_row[-2] == "**missing**" and goop_row[-1] == "—"
+    assert goop_row[5] == "**missing**" and goop_row[6] == "2.91e-09" and goop_row[9] == "0.00189"
+    assert goop_row[11] == "0.0055"  # CConv (Knowl 8)
+    check_figures(readme, {"time_vs_error.png"})
+
+    every = write_report("domains", "smoke", tmp_path / "all").read_text()
+    names = [domain_reference(s.domain).name for s in domain_sweeps()]
+    assert len(names) == 16
+    for name in names:
+        (row,) = table_rows(every, name, DOMAIN_CELLS)
+        assert row[-2] == "**missing**"
+
+
+def test_cli_report_and_unknown_sweep(swept: dict[str, Path], tmp_path: Path) -> None:
+    assert main(["report", str(swept["domain"]), "--tier", "smoke", "--reports-root", str(tmp_path)]) == 0
+    assert (tmp_path / "domain-tiny" / "smoke" / "README.md").is_file()
+    with pytest.raises(ValueError, match="no sweep named"):
+        write_report("ablation-no_such_axis", "smoke", tmp_path)
+    assert tracking.search_sweep_runs("sweep:never-ran") == []
+    assert collect(load_sweep(swept["domain"]), "small")[0].status == "missing"
+
+
+def test_pareto_front_and_references() -> None:
+    cost = np.array([1.0, 2.0, 3.0, 1.5, np.nan])
+    error = np.array([5.0, 1.0, 0.5, 6.0, 0.1])
+    assert pareto_front(cost, error).tolist() == [0, 1, 2]
+    assert ablation_reference("train.noise_std") == {"default": 3e-4, "scale": "log"}
+    assert ablation_reference("model.message_passing_steps")["scale"] == "linear"
+    assert domain_reference("tiny") is None
+    water = domain_reference("waterdrop")
+    assert water.rollout_mse == pytest.approx(7.01e-3) and water.cconv_rollout_mse == pytest.approx(18e-3)
+    assert inference_reference(2, "MPM (2D)")["gns_seconds"] == [0.025, 0.059]
+    assert inference_reference(3, "SPH (3D)")["gns_seconds"] == [0.25, 0.36]
+    assert inference_reference(3, "PBD (3D)") is None
+
+
+@pytest.mark.parametrize("axis, values", [("model.position_encoding", ["relative", "absolute"]),
+                                          ("model.shared_processor", [False, True]),
+                                          ("train.noise_std", [0.0, 1e-4, 3e-4, 1e-2])])
+def test_ablation_figure_for_categorical_and_log_axes(axis: str, values: list, tmp_path: Path) -> None:
+    from gns_bench.report.figures import PANELS, ablation_figure
+
+    stats = {m: [(10.0 ** -(i + 3), 1e-5, 2) for i in range(len(values))] for m, _ in PANELS}
+    path = ablation_figure(axis, values, stats, ablation_reference(axis), tmp_path / "a.png")
+    image = matplotlib.image.imread(path)
+    assert image.shape[1] > image.shape[0] > 100 and image.std() > 0
