@@ -72,12 +72,11 @@ class InteractionNetwork(nn.Module):
         """phi_e([e, v_sender, v_receiver (, u)]) with the first layer split per node (see module doc)."""
         first, rest = self.edge_mlp[0], self.edge_mlp[1:]
         size = self.latent_size
-        weight = first.weight  # [H, 3L (+L)]
-        per_node = nodes @ torch.cat([weight[:, size:2 * size], weight[:, 2 * size:3 * size]], dim=0).T
-        hidden_size = weight.shape[0]
+        weight = first.weight  # [H, 3L (+L)]: columns for [e, v_sender, v_receiver (, u)]
         hidden = torch.addmm(first.bias, edges, weight[:, :size].T)
-        hidden = hidden + per_node[:, :hidden_size].index_select(0, edge_index[0])
-        hidden = hidden + per_node[:, hidden_size:].index_select(0, edge_index[1])
+        # Per-node projections (N x L x H each, cheap) gathered per edge: contiguous rows for index_select.
+        hidden = hidden + (nodes @ weight[:, size:2 * size].T).index_select(0, edge_index[0])
+        hidden = hidden + (nodes @ weight[:, 2 * size:3 * size].T).index_select(0, edge_index[1])
         if edge_globals is not None:
             hidden = hidden + edge_globals @ weight[:, 3 * size:].T
         return rest(hidden)
