@@ -37,8 +37,12 @@ class MaterialParams:
     youngs_modulus: float = 1000.0  # sand and goop
     poisson_ratio: float = 0.3
     friction_angle_deg: float = 40.0  # sand, Drucker-Prager
-    yield_stress: float = 0.3  # goop, von Mises
-    viscosity: float = 0.1  # goop, Bingham: plastic strain rate = (stress - yield) / viscosity
+    # goop, von Mises yield and Bingham viscosity (plastic strain rate = (stress - yield) / viscosity; see
+    # mpm_kernels.return_mapping). With the earlier 0.3 / 0.1 goop splashed almost like water on impact
+    # (Reynolds number ~ 10) and the yield stress then froze the splash's one-particle-thick sheets into
+    # saw-tooth spikes up to yield / (rho g) = 0.03 tall (two cells at grid 64) that sloshed on for seconds.
+    yield_stress: float = 0.1
+    viscosity: float = 0.3
 
     @property
     def lame(self) -> tuple[float, float]:

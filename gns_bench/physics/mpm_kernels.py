@@ -78,7 +78,14 @@ def build_kernels(dim: int):
             excess = dev_norm - yield_strain
             if excess > 0.0:
                 # von Mises yield: keep the volumetric part, pull the deviatoric strain towards the
-                # yield surface; `relax` in (0, 1] is the implicit Bingham relaxation factor per substep
+                # yield surface; `relax` in (0, 1] is the implicit Bingham relaxation factor per substep.
+                # Implicit Euler of d(excess)/dt = -(2 mu / eta) excess (a Maxwell element beyond yield,
+                # Yue et al. 2015 sec. 4 with Herschel-Bulkley exponent 1): in steady flow at deviatoric
+                # strain rate D the excess settles at eta D / (2 mu), i.e. ||dev tau|| = yield + eta ||D||,
+                # the Bingham law, for any substep (the update is unconditionally stable). The goop's
+                # look is set by its parameters (mpm.MaterialParams): eta must damp the impact (low
+                # Reynolds number) and yield / (rho g) must stay below a cell, or under-resolved splash
+                # sheets freeze into grid-scale spikes.
                 new_norm = yield_strain + excess * (1.0 - relax)
                 eps = tr / dim + dev * (new_norm / dev_norm)
         new_sig = ti.Matrix.zero(ti.f32, dim, dim)
@@ -130,7 +137,11 @@ def build_kernels(dim: int):
                 vg += dt * gravity
                 pos = ti.cast(g, ti.f32) * dx
                 # container walls (possibly moving): a node within one cell of a wall cannot carry
-                # material outward relative to the wall; slip with Coulomb friction tangentially
+                # material outward relative to the wall; slip with Coulomb friction tangentially.
+                # This is the separating slip condition of Hu et al. 2018's reference code on all sides,
+                # the lid included (the data's bounds are the container): only the outward normal
+                # velocity is removed, so material that reaches the lid slides along it and falls
+                # away under gravity at once (tests/physics: test_water_does_not_stick_to_lid_or_walls)
                 for d in ti.static(range(dim)):
                     rel = vg - box_vel
                     vn = 0.0
