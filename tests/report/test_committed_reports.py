@@ -44,7 +44,9 @@ def test_committed_domain_table_has_every_domain() -> None:
 
 
 @pytest.mark.parametrize("sweep_file", ["domains/goop.toml", "ablations/processor_sharing.toml"])
-def test_ci_regenerates_a_report_with_the_committed_structure(sweep_file: str, tmp_path: Path) -> None:
+def test_ci_regenerates_a_report_with_the_committed_structure(sweep_file: str, tmp_path: Path,
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")  # the real sweeps' own store
     sweep = load_sweep(SWEEPS_DIR / sweep_file)
     outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
     assert all(o.status in ("FINISHED", "SKIPPED") for o in outcomes), [o.error for o in outcomes]
