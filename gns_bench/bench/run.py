@@ -108,19 +108,26 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
     return rows
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM). Unlike getrusage's ru_maxrss, which a child started by
+    fork and exec inherits from its parent, it belongs to this process alone."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
+
+
 def scaling_point(particles: int, dim: int, device: str) -> dict[str, Any]:
     """One rollout step at this size (run in a fresh process by `measure_scaling`)."""
-    import resource
-
     torch_device = resolve_device(device)
-    baseline_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports kB
+    baseline_mb = peak_rss_mb()
     scene = synthetic_scene(particles, dim, 0.015 if dim == 2 else 0.035)
     model = build_model(ModelConfig(), scene, torch_device)
     b = rollout_breakdown(model, scene, torch_device, "fp32", repeats=1)
     if torch_device.type == "cuda":
         peak_mb = torch.cuda.max_memory_allocated() / 2**20
     else:
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        peak_mb = peak_rss_mb()
     return {"dim": dim, "particles": particles, "edges": b.num_edges, "step_s": b.total_s,
             "search_share": b.neighbour_search_s / b.total_s, "peak_memory_mb": peak_mb,
             "process_baseline_mb": baseline_mb if torch_device.type == "cpu" else 0.0, "device": str(torch_device)}
