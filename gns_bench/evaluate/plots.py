@@ -12,11 +12,17 @@ import numpy as np  # noqa: E402
 
 from gns_bench.evaluate.rollout import RolloutResult  # noqa: E402
 
-TYPE_COLOURS = {0: "tab:red", 3: "0.45", 5: "tab:blue", 6: "tab:orange", 7: "tab:green"}
+# One colour per particle type for every picture gns-bench draws (datasets, rollouts, reports).
+TYPE_COLOURS = {5: "#2b7bba", 6: "#d9a441", 7: "#b0378f", 3: "#555555", 0: "#d62728"}
+OTHER_COLOUR = "#333333"
+
+
+def type_colour(particle_type: int) -> str:
+    return TYPE_COLOURS.get(int(particle_type), OTHER_COLOUR)
 
 
 def type_colours(particle_type: np.ndarray) -> list[str]:
-    return [TYPE_COLOURS.get(int(t), "tab:purple") for t in particle_type]
+    return [type_colour(t) for t in particle_type]
 
 
 def plot_rollout(result: RolloutResult, path: str | Path, bounds: list[list[float]] | None = None,

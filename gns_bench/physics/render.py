@@ -17,8 +17,8 @@ import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from gns_bench.data.format import PARTICLE_TYPE_NAMES, read_metadata  # noqa: E402
+from gns_bench.evaluate.plots import type_colour, type_colours  # noqa: E402
 
-TYPE_COLOURS = {5: "#2b7bba", 6: "#d9a441", 7: "#b0378f", 3: "#555555", 0: "#d62728"}
 GIF_FRAMES = 40
 
 
@@ -39,7 +39,7 @@ def _vertical_axis(gravity: list[float] | None, dim: int) -> int:
 
 
 def _draw(ax, frame: np.ndarray, types: np.ndarray, bounds: np.ndarray, up: int, size: float) -> None:
-    colours = [TYPE_COLOURS.get(int(t), "#333333") for t in types]
+    colours = type_colours(types)
     if frame.shape[1] == 2:
         ax.scatter(frame[:, 0], frame[:, 1], c=colours, s=size, linewidths=0)
         ax.set_xlim(*bounds[0])
@@ -86,7 +86,7 @@ def render_dataset(dataset_dir: str | Path, split: str = "test", traj: int = 0, 
         _draw(ax, position[t], types, bounds, up, size)
         ax.set_title(f"t={t}", fontsize=8)
     present = sorted(set(types.tolist()))
-    handles = [plt.Line2D([], [], marker="o", ls="", color=TYPE_COLOURS.get(t, "#333333"),
+    handles = [plt.Line2D([], [], marker="o", ls="", color=type_colour(t),
                           label=PARTICLE_TYPE_NAMES.get(t, str(t))) for t in present]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
     fig.suptitle(f"{meta.name or dataset_dir.name}  {split}[{traj}]", fontsize=9)
