@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gns_bench.physics.render import TYPE_COLOURS, render_dataset
+from gns_bench.evaluate.plots import TYPE_COLOURS
+from gns_bench.physics.render import render_dataset
 
 
 def _has_colour(image: Image.Image, hex_colour: str, tolerance: int = 40) -> bool:
