@@ -154,7 +154,6 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
 
 
 def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
-    pytest.importorskip("submitit")
     path = sweeps / "tests" / "submitit.toml"
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
     sweep = load_sweep(path)
