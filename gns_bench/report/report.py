@@ -90,6 +90,11 @@ def budget_statement(rows: list[RunRow]) -> str:
         text += (f"Rollouts are cut at `eval.rollout_steps` = {'/'.join(capped)} steps, where the paper rolls out "
                  "whole trajectories (K = 150 to 2000 steps): errors grow along a rollout, so these rollout MSEs "
                  "are not comparable with the paper's (they typically sit below them). ")
+    stopped = [r for r in done if r.metric("rollout_stopped") > 0]
+    if stopped:
+        text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
+                 f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
+                 "their rollout MSE covers only the steps before the stop. ")
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
     if any(t != "paper" for t in tiers):
         text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "

@@ -168,3 +168,19 @@ def test_ablation_figure_for_categorical_and_log_axes(axis: str, values: list, t
     path = ablation_figure(axis, values, stats, ablation_reference(axis), tmp_path / "a.png")
     image = matplotlib.image.imread(path)
     assert image.shape[1] > image.shape[0] > 100 and image.std() > 0
+
+
+def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import budget_statement
+
+    planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
+
+    def row(run_id: str, stopped: float) -> RunRow:
+        record = tracking.RunRecord(run_id, planned.name, "FINISHED", 0, {"train.steps": "20"},
+                                    {"test/rollout_stopped": stopped, "test/rollout_mse": 1e-3})
+        return RunRow(planned, record)
+
+    text = budget_statement([row("aaa", 0.5), row("bbb", 0.0)])
+    assert "In 1 of 2 runs a health monitor stopped some rollouts early" in text and "`aaa`" in text
+    assert "health monitor" not in budget_statement([row("bbb", 0.0)])
