@@ -176,3 +176,27 @@ def test_nox_has_one_session_per_sweep_file(monkeypatch: pytest.MonkeyPatch) -> 
     sessions = set(nox.registry.get())
     assert {load_sweep(p).name for p in discover_sweeps()} <= sessions
     assert {"tests", "lint", "ui"} <= sessions
+
+
+def test_a_failing_run_is_recorded_failed_and_the_sweep_goes_on(sweeps: Path, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    path = sweeps / "tests" / "failing.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    from gns_bench.train import loop
+
+    real = loop.training_loss
+
+    def broken_for_m2(simulator, *args, **kwargs):
+        if simulator.config.message_passing_steps == 2:
+            raise RuntimeError("diverged on purpose")
+        return real(simulator, *args, **kwargs)
+
+    monkeypatch.setattr(loop, "training_loss", broken_for_m2)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    assert sorted(o.status for o in outcomes) == ["FAILED", "FINISHED"]
+    failed = next(o for o in outcomes if o.status == "FAILED")
+    assert "diverged on purpose" in failed.error and failed.run_id
+    runs = {r.info.run_name: r for r in runs_of(sweep.experiment)}
+    assert runs[failed.name].info.status == "FAILED"
+    assert "diverged on purpose" in runs[failed.name].data.tags["error"]
