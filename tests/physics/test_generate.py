@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -104,15 +101,9 @@ print(len(order), hashlib.sha256(pos.tobytes()).hexdigest())
 """
 
 
-def test_particle_to_grid_scatter_is_deterministic_across_thread_counts() -> None:
+def test_particle_to_grid_scatter_is_deterministic_across_thread_counts(digests_across_threads) -> None:
     """Float atomic adds would make the result depend on scheduling; the fixed-point scatter must not."""
-    digests = set()
-    for threads in ("1", "4"):
-        env = {**os.environ, "GNS_BENCH_TAICHI_THREADS": threads, "GNS_BENCH_TAICHI_ARCH": "cpu"}
-        out = subprocess.run([sys.executable, "-c", _THREADED_RUN], env=env, capture_output=True, text=True,
-                             check=True)
-        digests.add(out.stdout.strip().splitlines()[-1])
-    assert len(digests) == 1
+    assert len(digests_across_threads(_THREADED_RUN, ("1", "4"))) == 1
 
 
 def test_resume_after_interruption_gives_identical_dataset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

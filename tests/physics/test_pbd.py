@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -100,17 +97,12 @@ def test_same_seed_gives_identical_trajectories() -> None:
 
 
 @pytest.mark.slow
-def test_thread_count_does_not_change_the_bits() -> None:
+def test_thread_count_does_not_change_the_bits(digests_across_threads) -> None:
     script = ("import hashlib, numpy as np; from gns_bench.physics.pbd import simulate; "
               "from gns_bench.physics.spec import load_domain_spec; "
               "t = simulate(load_domain_spec('boxbath'), 'smoke', np.random.default_rng(3)); "
               "print(hashlib.sha256(t.position.tobytes()).hexdigest())")
-    digests = set()
-    for threads in ("1", "2"):
-        env = {**os.environ, "GNS_BENCH_TAICHI_THREADS": threads, "GNS_BENCH_TAICHI_ARCH": "cpu"}
-        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-        digests.add(out.stdout.strip().splitlines()[-1])
-    assert len(digests) == 1
+    assert len(digests_across_threads(script, ("1", "2"))) == 1
 
 
 def test_blow_up_raises_naming_domain_and_frame() -> None:
