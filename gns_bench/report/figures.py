@@ -28,6 +28,15 @@ def _spans_decades(data: np.ndarray) -> bool:
     return bool(finite.size and (finite > 0).all() and finite.max() / finite.min() > 10)
 
 
+def _save(fig: plt.Figure, axes: np.ndarray, path: Path) -> Path:
+    """Legend on the first panel, then a tight, small PNG."""
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
 def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[float, float, int]]],
                     reference: dict[str, Any], path: Path) -> Path:
     """One panel per metric against the axis value; error bars = std over seeds; the paper's default as a
@@ -60,11 +69,7 @@ def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[fl
         ax.set_title(label, fontsize=9)
         ax.set_xlabel(axis.split(".")[-1], fontsize=8)
         ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
-    return path
+    return _save(fig, axes, path)
 
 
 def pareto_front(cost: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -98,11 +103,7 @@ def time_error_figure(points: list[tuple[str, float, float, float]], path: Path)
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("rollout MSE", fontsize=8)
         ax.tick_params(labelsize=7)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
-    return path
+    return _save(fig, axes, path)
 
 
 def _extent(result: RolloutResult, dims: tuple[int, int]) -> list[list[float]]:
