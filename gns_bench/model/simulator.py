@@ -83,7 +83,8 @@ class LearnedSimulator(nn.Module):
         n = window.shape[0]
         if batch is None:
             batch = torch.zeros(n, dtype=torch.long, device=window.device)
-        num_graphs = int(batch[-1]) + 1 if n else 1
+        # Only the global-latent ablation needs the graph count; reading it syncs a GPU, so skip it otherwise.
+        num_graphs = int(batch[-1]) + 1 if n and self.config.global_latent else 1
         uses_edges = self.network.uses_edges
         if edge_index is None and uses_edges:
             edge_index = self.build_graph(window[:, -1], batch)
