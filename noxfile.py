@@ -101,11 +101,13 @@ def _sweep_session(path: Path):
     return session
 
 
-# One session per sweep file, named as gns-bench names the sweep: sweeps/ablations/noise_std.toml ->
-# ablation-noise_std. A new TOML is a new session; nothing here changes.
+# One session per sweep file, named as gns-bench names the sweep (gns_bench/sweep/spec.py sweep_name):
+# sweeps/ablations/noise_std.toml -> ablation-noise_std, sweeps/stress/goop.toml -> stress-goop. A new TOML is a new session; nothing here changes.
 for _path in sorted(Path("sweeps").rglob("*.toml")):
     if _path.name == "tiers.toml":
         continue
-    _folder = _path.parent.name.removesuffix("s") if _path.parent != Path("sweeps") else ""
+    _folder = _path.parent.name if _path.parent != Path("sweeps") else ""
+    if _folder.endswith("s") and not _folder.endswith("ss"):  # domains -> domain; stress stays stress
+        _folder = _folder[:-1]
     _name = f"{_folder}-{_path.stem}" if _folder else _path.stem
     nox.session(name=_name, venv_backend="none")(_sweep_session(_path))

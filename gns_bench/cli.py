@@ -189,7 +189,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
-                                 "or 'domains' for the table across all domain sweeps")
+                                 "'domains' for the table across all domain sweeps, or 'stability' for the stress sweeps")
     p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
     p.add_argument("--reports-root", type=Path, default=Path("reports"))
 
@@ -254,6 +254,41 @@ def cmd_quickstart(args: argparse.Namespace) -> None:
     print(f"MLflow store: {tracking_uri()} (experiment 'quickstart'); browse it with: gns-bench ui")
 
 
+def _add_stress(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "stress", help="stress-test a trained model: long horizons, precision, perturbations, scale",
+        description="Runs the tests and generalisation rollouts named by stress.* overrides (default: all four "
+                    "tests) on dataset variants of the training domain (datasets/variants/), generated on first "
+                    "use, and logs them to MLflow. E.g. stress.tests='[\"horizon\",\"scale\"]' "
+                    "stress.scales='[2,8]' stress.generalisation='[\"waterramps-inflow\"]' "
+                    "stress.rollout_steps=200")
+    p.add_argument("checkpoint", type=Path, help="checkpoint file or run directory")
+    p.add_argument("dataset", type=Path, help="the dataset the model was trained on")
+    p.add_argument("overrides", nargs="*", help="stress.key=value overrides")
+    p.add_argument("--out", type=Path, default=None, help="where figures and curves go (default: the run directory)")
+    p.add_argument("--experiment", default="gns-bench")
+    p.add_argument("--device", default="auto")
+
+
+def cmd_stress(args: argparse.Namespace) -> None:
+    from gns_bench.config import STRESS_TESTS
+    from gns_bench.pipeline import stress_run
+
+    overrides = list(args.overrides)
+    bad = [o for o in overrides if not o.startswith("stress.")]
+    if bad:
+        raise ConfigError(f"stress takes only stress.* overrides, got {bad}")
+    if not any(o.startswith(("stress.tests=", "stress.generalisation=")) for o in overrides):
+        overrides.insert(0, "stress.tests=" + repr(list(STRESS_TESTS)).replace("'", '"'))
+    summary = stress_run(args.checkpoint, args.dataset, overrides, out_dir=args.out, experiment=args.experiment,
+                         device=args.device)
+    print(f"MLflow run: {summary.run_id}")
+    print(f"figures and curves: {(summary.out_dir / 'stress').resolve()}")
+    for key, value in sorted(summary.metrics.items()):
+        if key.startswith("stress/") and key.count("/") >= 2:
+            print(f"  {key:48s} {value:.4g}")
+
+
 def _print_summary(summary) -> None:
     print(f"MLflow run: {summary.run_id}")
     print(f"run directory: {summary.out_dir.resolve()}")
@@ -271,6 +306,7 @@ COMMANDS = {
     "rollout": (_add_rollout, cmd_rollout),
     "sweep": (_add_sweep, cmd_sweep),
     "report": (_add_report, cmd_report),
+    "stress": (_add_stress, cmd_stress),
     "bench": (_add_bench, cmd_bench),
     "ui": (_add_ui, cmd_ui),
     "quickstart": (_add_quickstart, cmd_quickstart),

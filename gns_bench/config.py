@@ -102,7 +102,7 @@ class EvalConfig:
     # Rollouts: health monitors (always on unless switched off), Verlet lists, reduced precision.
     monitors: bool = True  # stop a rollout on NaN/inf, escape from the bounds, energy blow-up, density collapse
     neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
-    precision: Literal["fp32", "bf16"] = "fp32"  # bf16: autocast the network in rollouts
+    precision: Literal["fp32", "bf16", "fp64"] = "fp32"  # bf16: autocast the network; fp64: a reference
 
     def validate(self) -> None:
         _require(self.max_trajectories is None or self.max_trajectories >= 1, "eval.max_trajectories",
@@ -119,16 +119,53 @@ class EvalConfig:
         _require(self.neighbour_skin >= 0, "eval.neighbour_skin", "must be >= 0")
 
 
+STRESS_TESTS = ("horizon", "precision", "perturbation", "scale")
+
+
+@dataclass
+class StressConfig:
+    """Stress tests and generalisation rollouts of a trained model (gns_bench/stress): nothing runs unless
+    `tests` or `generalisation` name something. Scenes come from dataset variants (`datasets/variants/`):
+    `<domain>-long` (horizon), `<domain>-jitter` (the solver's own sensitivity), `<domain>-x<s>` (scale)."""
+
+    tests: list[str] = field(default_factory=list)  # any of STRESS_TESTS
+    generalisation: list[str] = field(default_factory=list)  # variant ids to evaluate on, e.g. "continuous-heldout"
+    dataset_tier: str = ""  # tier of the variant datasets ("": the training data's tier)
+    max_trajectories: int = 2  # per test and per generalisation dataset
+    rollout_steps: int | None = None  # cap on every stress rollout (None: the scene's whole length)
+    precisions: list[str] = field(default_factory=lambda: ["fp64", "fp32", "bf16"])
+    perturbation_std: float = 0.0  # initial position noise; 0: the jitter variant's `initial_jitter`
+    scales: list[int] = field(default_factory=lambda: [2, 8, 34])
+
+    def validate(self) -> None:
+        for name in self.tests:
+            _require(name in STRESS_TESTS, "stress.tests", f"unknown test {name!r}; expected some of {STRESS_TESTS}")
+        for p in self.precisions:
+            _require(p in ("fp64", "fp32", "bf16"), "stress.precisions", f"unknown precision {p!r}")
+        _require(self.dataset_tier in ("", "smoke", "small", "paper"), "stress.dataset_tier",
+                 "expected smoke, small, paper or empty")
+        _require(self.max_trajectories >= 1, "stress.max_trajectories", "must be >= 1")
+        _require(self.rollout_steps is None or self.rollout_steps >= 1, "stress.rollout_steps", "must be >= 1")
+        _require(self.perturbation_std >= 0, "stress.perturbation_std", "must be >= 0")
+        _require(all(s >= 1 for s in self.scales), "stress.scales", "must be >= 1")
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.tests or self.generalisation)
+
+
 @dataclass
 class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    stress: StressConfig = field(default_factory=StressConfig)
 
     def validate(self) -> Config:
         self.model.validate()
         self.train.validate()
         self.eval.validate()
+        self.stress.validate()
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -163,6 +200,11 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0])
+    if origin is list:
+        (item,) = typing.get_args(annotation)
+        if isinstance(value, list | tuple):
+            return [_coerce(v, item, key) for v in value]
+        raise ConfigError(f"{key}: expected a list, got {value!r}")
     if annotation is bool:
         if isinstance(value, bool):
             return value

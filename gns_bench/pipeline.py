@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -111,7 +112,72 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
             evaluation = evaluate(simulator, trajectories, config.eval, device=device, progress=progress)
             _log_evaluation(run, evaluation, out_dir, meta.bounds, config.eval.split)
             metrics = evaluation.metrics
+            if config.stress.enabled:
+                metrics = {**metrics, **_stress_and_log(run, simulator, config, dataset_dir, out_dir, device,
+                                                        progress)}
         return RunSummary(run.run_id, out_dir, result.checkpoint, metrics)
+
+
+def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_dir: str | Path, out_dir: Path,
+                    device: str, progress: bool) -> dict[str, float]:
+    """Run `config.stress` and log it into `run`: metrics `stress/<test>/...` and
+    `generalisation/<variant>/...`, each test's curves (JSON) and figure, monitors that tripped as tags."""
+    from gns_bench.stress.plots import plot_stress
+    from gns_bench.stress.run import run_stress
+
+    outcome = run_stress(simulator, config, dataset_dir, device=device, progress=progress)
+    stress_dir = out_dir / "stress"
+    stress_dir.mkdir(parents=True, exist_ok=True)
+    logged: dict[str, float] = {}
+    training_length = read_metadata(dataset_dir).sequence_length
+    for result in outcome.results:
+        values = {f"stress/{result.name}/{key}": value for key, value in result.metrics.items()}
+        run.log_metrics(values)
+        logged.update(values)
+        record = {"name": result.name, "metrics": result.metrics, "curves": result.curves, "trips": result.trips,
+                  "notes": result.notes}
+        path = stress_dir / f"{result.name}.json"
+        path.write_text(json.dumps(record, allow_nan=True) + "\n")
+        run.log_artifact(path, "stress")
+        figure = plot_stress(result, stress_dir / f"{result.name}.png",
+                             training_length=training_length if result.name == "horizon" else None)
+        run.log_artifact(figure, "stress")
+        if result.trips:
+            run.set_tags({f"stress/{result.name}/trips": "; ".join(result.trips)[:5000]})
+    for variant, (evaluation, scene_meta) in outcome.generalisation.items():
+        values = {f"generalisation/{variant}/{key}": value for key, value in evaluation.metrics.items()}
+        run.log_metrics(values)
+        logged.update(values)
+        run.set_tags({f"generalisation/{variant}/{key}": value for key, value in evaluation.tags.items()})
+        for path in write_evaluation_artifacts(evaluation, stress_dir / variant, scene_meta.bounds, variant):
+            run.log_artifact(path, f"generalisation/{variant}")
+    run.set_tags({"stress/tests": ",".join(r.name for r in outcome.results),
+                  "generalisation/datasets": ",".join(outcome.generalisation)})
+    if outcome.skipped:
+        run.set_tags({"stress/skipped": "; ".join(outcome.skipped)[:5000]})
+    return logged
+
+
+def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides: list[str] | None = None, *,
+               out_dir: str | Path | None = None, experiment: str = DEFAULT_EXPERIMENT, device: str = "auto",
+               progress: bool = True) -> RunSummary:
+    """Stress-test a checkpoint trained on `dataset_dir` as its own MLflow run (kind "stress")."""
+    from gns_bench.config import apply_overrides, config_from_dict
+
+    torch_device = str(resolve_device(device))
+    simulator, config, _ = load_simulator(checkpoint, torch_device)
+    if stress_overrides:
+        config = config_from_dict(apply_overrides(config.to_dict(), stress_overrides), f"{checkpoint} + overrides")
+    if not config.stress.enabled:
+        raise ValueError("nothing to run: set stress.tests (horizon, precision, perturbation, scale) or "
+                         "stress.generalisation (dataset variant ids)")
+    checkpoint = Path(checkpoint)
+    out_dir = Path(out_dir) if out_dir else (checkpoint if checkpoint.is_dir() else checkpoint.parent)
+    params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}
+    tags = {**tracking.environment_tags(torch_device), **_dataset_tags(dataset_dir), "kind": "stress"}
+    with tracking.start_run(experiment, f"stress-{Path(dataset_dir).name}", params=params, tags=tags) as run:
+        metrics = _stress_and_log(run, simulator, config, dataset_dir, out_dir, torch_device, progress)
+        return RunSummary(run.run_id, out_dir, None, metrics)
 
 
 def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: EvalConfig | None = None, *,
@@ -132,7 +198,8 @@ def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: E
     with tracking.start_run(experiment, f"evaluate-{eval_config.split}", params=params, tags=tags) as run:
         trajectories = load_split(dataset_dir, eval_config.split, data_meta,
                                   min_length=config.model.input_sequence_length + 1)
-        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress)
+        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress,
+                              bounds=data_meta.bounds)  # the scene's walls (a larger arena than in training)
         _log_evaluation(run, evaluation, out_dir, data_meta.bounds, eval_config.split)
         return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
 

@@ -4,6 +4,7 @@ Each h5 file has one group per trajectory (`00000`, `00001`, ...) with
   position       [T, N, D] float32  (T = sequence_length + 1 frames)
   particle_type  [N]       int64
   step_context   [T, C]    float32  (optional: global context such as a friction angle)
+  birth_step     [N]       int64    (optional: inflow; the frame each particle enters the scene)
 which is also the layout LagrangeBench reads. `metadata.json` holds the fields of the original
 DeepMind release plus ours (name, particle types, walls, gravity, generator, content hash).
 
@@ -27,7 +28,7 @@ import numpy as np
 
 SPLITS = ("train", "valid", "test")
 REQUIRED_FIELDS = ("position", "particle_type")
-OPTIONAL_FIELDS = ("step_context",)
+OPTIONAL_FIELDS = ("step_context", "birth_step")
 
 # Particle type ids as in the released data (9 possible ids, REFERENCE.md). Id 3 is kinematic:
 # boundaries and obstacles, in the graph but never predicted, noised or in the loss.
@@ -60,6 +61,25 @@ class Trajectory:
     position: np.ndarray  # [T, N, D] float32
     particle_type: np.ndarray  # [N] int64
     step_context: np.ndarray | None = None  # [T, C] float32
+    # Inflow: the frame at which each particle enters the scene (None: all present from frame 0). Before
+    # that frame its positions are its prescribed path (the emitter's), which give a particle entering at
+    # frame b its velocity history; the model sees it only from frame b on (evaluate/rollout.py).
+    birth_step: np.ndarray | None = None  # [N] int64
+
+    @property
+    def has_inflow(self) -> bool:
+        return self.birth_step is not None and bool(np.any(self.birth_step > 0))
+
+    def active(self, frame: int) -> np.ndarray:
+        """[N] bool: the particles present at `frame`."""
+        if self.birth_step is None:
+            return np.ones(self.num_particles, dtype=bool)
+        return self.birth_step <= frame
+
+    def select(self, mask: np.ndarray) -> Trajectory:
+        """The trajectory of the particles in `mask` only."""
+        return Trajectory(self.position[:, mask], self.particle_type[mask], self.step_context,
+                          None if self.birth_step is None else self.birth_step[mask])
 
     @property
     def num_steps(self) -> int:
@@ -219,6 +239,13 @@ def validate_trajectory(traj: Trajectory, meta: Metadata, path: str | os.PathLik
                                f"{ctx.shape[1]}", key, "step_context")
         if not np.all(np.isfinite(ctx)):
             raise DatasetError(path, "NaN or inf", key, "step_context")
+    birth = traj.birth_step
+    if birth is not None:
+        if birth.shape != (pos.shape[1],):
+            raise DatasetError(path, f"expected shape [N]=[{pos.shape[1]}], got {birth.shape}", key, "birth_step")
+        if birth.size and (birth.min() < 0 or birth.max() >= pos.shape[0]):
+            raise DatasetError(path, f"expected frames in [0, {pos.shape[0]}), got [{birth.min()}, "
+                               f"{birth.max()}]", key, "birth_step")
 
 
 def _read_group(path: Path, key: str, group: Any) -> Trajectory:
@@ -250,7 +277,13 @@ def _read_group(path: Path, key: str, group: Any) -> Trajectory:
         if not np.issubdtype(ctx.dtype, np.floating):
             raise DatasetError(path, f"expected float32, got {ctx.dtype}", key, "step_context")
         ctx = ctx.astype(np.float32)
-    return Trajectory(pos.astype(np.float32), types.astype(np.int64), ctx)
+    birth = arrays.get("birth_step")
+    if birth is not None:
+        birth = np.asarray(birth)
+        if not np.issubdtype(birth.dtype, np.integer):
+            raise DatasetError(path, f"expected int64, got {birth.dtype}", key, "birth_step")
+        birth = birth.astype(np.int64)
+    return Trajectory(pos.astype(np.float32), types.astype(np.int64), ctx, birth)
 
 
 def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,
@@ -298,7 +331,7 @@ def content_hash(dataset_dir: str | os.PathLike) -> str:
             continue
         digest.update(split.encode())
         for traj in iter_split(dataset_dir, split):
-            for array in (traj.position, traj.particle_type, traj.step_context):
+            for array in (traj.position, traj.particle_type, traj.step_context, traj.birth_step):
                 if array is not None:
                     digest.update(str(array.shape).encode())
                     digest.update(np.ascontiguousarray(array).tobytes())
@@ -318,6 +351,8 @@ def write_trajectory(f: h5py.File, key: str, traj: Trajectory) -> None:
     group.create_dataset("particle_type", data=traj.particle_type.astype(np.int64), track_times=False)
     if traj.step_context is not None:
         group.create_dataset("step_context", data=traj.step_context.astype(np.float32), track_times=False)
+    if traj.birth_step is not None:
+        group.create_dataset("birth_step", data=traj.birth_step.astype(np.int64), track_times=False)
     group.attrs[_COMPLETE_ATTR] = 1  # written last: a group without it was cut off mid-write
     f.flush()
 
@@ -367,8 +402,11 @@ class DatasetWriter:
 
     def finish(self, meta: Metadata) -> Path:
         """Validate everything written, add the content hash, write metadata and rename into place."""
+        if not any(self._counts.values()):
+            raise DatasetError(self.partial_dir, "no trajectories in any split; nothing to finish")
         for split in SPLITS:
-            load_split(self.partial_dir, split, meta)  # raises on anything wrong; nothing is renamed
+            if self._counts[split]:  # an evaluation-only dataset (a stress scene) may hold only `test`
+                load_split(self.partial_dir, split, meta)  # raises on anything wrong; nothing is renamed
         meta.content_hash = content_hash(self.partial_dir)
         write_json_atomic(self.partial_dir / "metadata.json", meta.to_json())
         if self.out_dir.exists():

@@ -35,21 +35,24 @@ def distributional_metrics(result: RolloutResult, config: EvalConfig, radius: fl
     """MMD and OT between predicted and true moving-particle clouds, averaged over `config.distribution_steps`
     evenly spaced rollout steps, plus the kinetic-energy error over every step. Returns (values, OT method)."""
     k = min(result.predicted.shape[0], result.ground_truth.shape[0])
-    mask = result.moving_mask
     nan = float("nan")  # every row gets the same keys (the per-trajectory CSV needs them)
-    if k == 0 or not mask.any():
+    if k == 0 or not result.moving_mask.any():
         return {"kinetic_energy_error": nan, "mmd": nan, "ot": nan, "ot_exact": nan}, ""
-    predicted, truth = result.predicted[:k][:, mask], result.ground_truth[:k][:, mask]
-    values = {"kinetic_energy_error": metrics.kinetic_energy_error(predicted, truth,
-                                                                   result.initial_window[-1][mask])}
+    scored = result.scored_mask(k)
+    per_step = scored.ndim > 1  # inflow: each step compares the particles present then
+    first = scored[0] if per_step and scored[0].any() else result.moving_mask  # kinetic energy: present at start
+    values = {"kinetic_energy_error": metrics.kinetic_energy_error(
+        result.predicted[:k][:, first], result.ground_truth[:k][:, first], result.initial_window[-1][first])}
     steps = metrics.evenly_spaced_steps(k, config.distribution_steps)
     if len(steps) == 0:
         return {**values, "mmd": nan, "ot": nan, "ot_exact": nan}, ""
-    keep = metrics.subsample_particles(predicted.shape[1], config.distribution_max_particles)
     bandwidth = config.mmd_bandwidth_radii * radius
     mmds, ots, method = [], [], ""
     for step in steps:
-        x, y = predicted[step][keep], truth[step][keep]
+        mask = scored[step] if per_step else scored
+        x, y = result.predicted[step][mask], result.ground_truth[step][mask]
+        keep = metrics.subsample_particles(x.shape[0], config.distribution_max_particles)
+        x, y = x[keep], y[keep]
         mmds.append(metrics.mmd(x, y, bandwidth))
         value, method = metrics.optimal_transport(x, y, config.ot_exact_max_particles, config.sinkhorn_reg, device)
         ots.append(value)
@@ -65,6 +68,17 @@ def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_window
     frames = list(range(w - 1, trajectory.num_steps - 1))
     if max_windows is not None and len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
+    if trajectory.has_inflow:  # each window holds only the particles present at its last input frame
+        errors = [_one_step_errors(simulator, trajectory.select(trajectory.active(t)), [t], w, device)
+                  for t in frames]
+        return sum(total for total, _ in errors) / sum(count for _, count in errors)
+    total, count = _one_step_errors(simulator, trajectory, frames, w, device)
+    return total / count
+
+
+def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames: list[int], w: int,
+                     device: torch.device | str) -> tuple[float, int]:
+    """Sum and count of squared one-step errors of the moving particles over windows ending at `frames`."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
     total, count = 0.0, 0
     for start in range(0, len(frames), ONE_STEP_BATCH):
@@ -75,38 +89,43 @@ def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_window
         error = error[:, moving.to(error.device)]
         total += float(error.sum())
         count += error.numel()
-    return total / count
+    return total, count
 
 
 def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig, *,
              device: torch.device | str = "cpu", hooks: tuple[Hook, ...] = (),
-             progress: bool = True) -> Evaluation:
+             progress: bool = True, bounds: list[list[float]] | None = None) -> Evaluation:
     """Roll out each trajectory and measure it; `metrics` holds the means over trajectories of every
-    per-trajectory value (`ot_exact` is then the fraction of trajectories whose OT was exact EMD)."""
+    per-trajectory value (`ot_exact` is then the fraction of trajectories whose OT was exact EMD).
+
+    bounds: the scene's walls when they are not the training data's (a larger arena)."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
     results, per_traj, methods, stops = [], [], set(), []
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
-        run_hooks = (*hooks, *(health_monitors(simulator, traj, config.rollout_steps) if config.monitors else ()))
+        run_hooks = (*hooks, *(health_monitors(simulator, traj, config.rollout_steps, bounds)
+                               if config.monitors else ()))
         started = time.perf_counter()
         result = rollout(simulator, traj, config.rollout_steps, run_hooks, device,
-                         neighbour_skin=config.neighbour_skin, precision=config.precision)
+                         neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds)
         rollout_seconds = time.perf_counter() - started
         if result.stopped_by is not None:
             stops.append(f"trajectory {index}: {result.stop_reason}")
-        mask = result.moving_mask
         k = result.predicted.shape[0]
+        mask = result.scored_mask(k)
         row = {
             "trajectory": index,
             "one_step_mse": one_step_mse(simulator, traj, config.one_step_windows, device),
             "rollout_mse": metrics.rollout_mse(result.predicted, result.ground_truth[:k], mask) if k else float("nan"),
             "baseline_cv_rollout_mse": metrics.rollout_mse(
                 metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0]),
-                result.ground_truth, mask),
+                result.ground_truth, result.scored_mask(result.ground_truth.shape[0])),
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),
         }
+        if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
+            row["context"] = float(traj.step_context[0, 0])
         for h, value in metrics.mse_at_horizons(result.predicted, result.ground_truth[:k], mask).items():
             row[f"mse_h{h}"] = value
         distributional, method = distributional_metrics(result, config, simulator.radius, device)
@@ -117,7 +136,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         results.append(result)
     summary = {}
     for key in per_traj[0]:
-        if key != "trajectory":
+        if key not in ("trajectory", "context"):
             summary[key] = float(np.mean([row[key] for row in per_traj if key in row]))
     summary["num_trajectories"] = float(len(per_traj))
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
@@ -126,15 +145,17 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     return Evaluation(summary, results, per_traj, tags)
 
 
-def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None) -> list:
-    """The default monitors for one trajectory, with its ground-truth kinetic energy as the reference."""
+def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None,
+                    bounds: list[list[float]] | None = None) -> list:
+    """The default monitors for one trajectory, with its ground-truth kinetic energy as the reference
+    (in inflow scenes particles not yet present follow the data, in the rollout as in the reference)."""
     w = simulator.config.input_sequence_length
     truth = trajectory.position[w - 1: w + (num_steps if num_steps is not None else trajectory.num_steps)]
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
     reference = metrics.kinetic_energy(truth[1:], truth[0], moving) if len(truth) > 1 else None
     window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1)
-    return default_monitors(simulator.bounds.tolist(), simulator.radius, window, torch.from_numpy(moving),
-                            reference)
+    return default_monitors(bounds if bounds is not None else simulator.bounds.tolist(), simulator.radius, window,
+                            torch.from_numpy(moving), reference)
 
 
 def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:

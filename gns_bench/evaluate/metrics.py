@@ -15,14 +15,20 @@ DEFAULT_HORIZONS = (1, 10, 100)
 
 
 def position_mse(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean squared position error over [..., N, D]; mask [N] selects the particles that count."""
+    """Mean squared position error over [..., N, D]; mask [N] selects the particles that count, or
+    [K, N] per step (inflow scenes, where particles enter over time)."""
     if predicted.shape != truth.shape:
         raise ValueError(f"shape mismatch: predicted {predicted.shape} vs truth {truth.shape}")
     error = np.square(predicted.astype(np.float64) - truth.astype(np.float64))
     if mask is not None:
         if not mask.any():
             raise ValueError("no particle selected by the mask")
-        error = error[..., mask, :]
+        if mask.ndim == 1:
+            error = error[..., mask, :]
+        elif mask.shape == error.shape[:-1]:
+            error = error[mask]
+        else:
+            raise ValueError(f"mask shape {mask.shape}: expected [N] or {error.shape[:-1]}")
     return float(error.mean())
 
 
@@ -34,7 +40,10 @@ def rollout_mse(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | Non
 def mse_at_horizons(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None,
                     horizons: Sequence[int] = DEFAULT_HORIZONS) -> dict[int, float]:
     """MSE averaged over the first h rollout steps, for each horizon h the rollout reaches."""
-    return {h: position_mse(predicted[:h], truth[:h], mask) for h in horizons if h <= predicted.shape[0]}
+    def upto(h: int) -> np.ndarray | None:
+        return mask[:h] if mask is not None and mask.ndim > 1 else mask
+
+    return {h: position_mse(predicted[:h], truth[:h], upto(h)) for h in horizons if h <= predicted.shape[0]}
 
 
 def constant_velocity_rollout(initial_window: np.ndarray, num_steps: int) -> np.ndarray:

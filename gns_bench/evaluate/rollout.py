@@ -6,7 +6,8 @@ state and may stop a rollout by raising `RolloutStopped` (health monitors build 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,60 +48,108 @@ class RolloutResult:
     stopped_at: int | None = None
     stop_reason: str | None = None
     stopped_by: RolloutStopped | None = None  # the exception a hook raised (a monitor carries its details)
+    birth_step: np.ndarray | None = None  # [N] inflow: the frame each particle enters (None: all from the start)
 
     @property
     def moving_mask(self) -> np.ndarray:
         return ~kinematic_mask(torch.from_numpy(self.particle_type)).numpy()
 
+    def scored_mask(self, num_steps: int | None = None) -> np.ndarray:
+        """The particles whose error counts: [N] moving particles, or [K, N] moving particles present at
+        each predicted frame when particles enter over time (inflow)."""
+        moving = self.moving_mask
+        if self.birth_step is None:
+            return moving
+        k = self.predicted.shape[0] if num_steps is None else num_steps
+        w = self.initial_window.shape[0]
+        frames = np.arange(w, w + k)[:, None]
+        return moving[None] & (self.birth_step[None] <= frames - 1)
+
 
 @torch.no_grad()
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
             hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
-            neighbour_skin: float = 0.0, precision: str = "fp32", reuse_static_edges: bool = True
-            ) -> RolloutResult:
+            neighbour_skin: float = 0.0, precision: str = "fp32", reuse_static_edges: bool = True,
+            bounds: Sequence[Sequence[float]] | None = None) -> RolloutResult:
     """Roll out from the first W frames; every option below gives the same edges as a fresh search.
 
     neighbour_skin > 0: Verlet neighbour lists, rebuilt only when particles moved skin / 2.
     reuse_static_edges: edges among particles that never move (fixed boundaries) are found once.
-    precision "bf16": autocast the network (positions and integration stay fp32).
+    precision "bf16" / "fp64": autocast the network to bf16, or run it in float64 (a reference).
+    bounds: the scene's walls, when they are not the training data's (a larger arena).
+    Inflow (`trajectory.birth_step`): a particle enters the graph at its birth frame with the window of
+    its prescribed path; before that it follows the data, like a kinematic particle, and sees nothing.
     """
     w = simulator.config.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
-    truth = torch.from_numpy(trajectory.position).to(device)  # [T, N, D]
+    dtype = torch.float64 if precision == "fp64" else torch.float32
+    truth = torch.from_numpy(trajectory.position).to(device, dtype)  # [T, N, D]
     particle_type = torch.from_numpy(trajectory.particle_type).to(device)
     kinematic = kinematic_mask(particle_type)[:, None]
-    context = (torch.from_numpy(trajectory.step_context).to(device)
+    context = (torch.from_numpy(trajectory.step_context).to(device, dtype)
                if trajectory.step_context is not None else None)
+    scene_bounds = None if bounds is None else torch.tensor(bounds, dtype=dtype, device=device)
+    birth = (torch.from_numpy(trajectory.birth_step).to(device) if trajectory.has_inflow else None)
     window = truth[:w].transpose(0, 1).contiguous()  # [N, W, D]
     predicted, stopped_at, reason, stopped_by = [], None, None, None
     neighbours = None
     static = (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic[:, 0]
-    if neighbour_skin > 0 and simulator.network.uses_edges:
+    if birth is not None:
+        pass  # the particle set changes: a fresh search every step over the particles present
+    elif neighbour_skin > 0 and simulator.network.uses_edges:
         neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.config.neighbour_backend,
                                       simulator.config.self_edges)
     elif reuse_static_edges and simulator.network.uses_edges and bool(static.any()) and not bool(static.all()):
         neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.config.neighbour_backend,
                                            simulator.config.self_edges)
-    for step in range(num_steps):
-        frame = w + step
-        step_context = context[frame - 1: frame] if context is not None else None
-        edges = neighbours(window[:, -1]) if neighbours is not None else None
-        with autocast(device, precision):
-            acceleration = simulator.denormalise_acceleration(
-                simulator(window, particle_type, None, step_context, edges).float())
-        next_position = features.integrate(window, acceleration)
-        next_position = torch.where(kinematic, truth[frame], next_position)
-        try:
-            for hook in hooks:
-                hook(RolloutState(step, frame, next_position, window))
-        except RolloutStopped as stop:
-            stopped_at, reason, stopped_by = step, stop.reason, stop
-            break
-        predicted.append(next_position)
-        window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
+    with _network_dtype(simulator, dtype):
+        for step in range(num_steps):
+            frame = w + step
+            step_context = context[frame - 1: frame] if context is not None else None
+            if birth is None:
+                edges = neighbours(window[:, -1]) if neighbours is not None else None
+                with autocast(device, precision):
+                    acceleration = simulator.denormalise_acceleration(
+                        simulator(window, particle_type, None, step_context, edges, scene_bounds).to(dtype))
+                next_position = features.integrate(window, acceleration)
+                next_position = torch.where(kinematic, truth[frame], next_position)
+            else:
+                present = birth <= frame - 1  # in the scene at the last input frame
+                index = present.nonzero()[:, 0]
+                sub_window = window.index_select(0, index)
+                with autocast(device, precision):
+                    acceleration = simulator.denormalise_acceleration(
+                        simulator(sub_window, particle_type.index_select(0, index), None, step_context, None,
+                                  scene_bounds).to(dtype))
+                next_position = truth[frame].clone()  # absent and kinematic particles follow the data
+                moved = features.integrate(sub_window, acceleration)
+                keep = ~kinematic[index, 0]
+                next_position[index[keep]] = moved[keep]
+            try:
+                for hook in hooks:
+                    hook(RolloutState(step, frame, next_position, window))
+            except RolloutStopped as stop:
+                stopped_at, reason, stopped_by = step, stop.reason, stop
+                break
+            predicted.append(next_position)
+            window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
     dim = trajectory.position.shape[2]
-    stacked = (torch.stack(predicted).cpu().numpy() if predicted
+    stacked = (torch.stack(predicted).float().cpu().numpy() if predicted
                else np.zeros((0, trajectory.num_particles, dim), dtype=np.float32))
     return RolloutResult(stacked, trajectory.position[w: w + num_steps], trajectory.position[:w],
-                         trajectory.particle_type, stopped_at, reason, stopped_by)
+                         trajectory.particle_type, stopped_at, reason, stopped_by,
+                         trajectory.birth_step if trajectory.has_inflow else None)
+
+
+@contextmanager
+def _network_dtype(simulator: LearnedSimulator, dtype: torch.dtype) -> Iterator[None]:
+    """Run the simulator's parameters and buffers in `dtype` (float64 for the fp64 reference), then restore."""
+    if dtype == torch.float32:
+        yield
+        return
+    simulator.to(dtype)
+    try:
+        yield
+    finally:
+        simulator.to(torch.float32)

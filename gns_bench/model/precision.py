@@ -10,7 +10,7 @@ from contextlib import AbstractContextManager, nullcontext
 
 import torch
 
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("fp32", "bf16", "fp64")  # fp64: rollouts only, the caller casts the network (a reference on CPU)
 
 
 def autocast(device: torch.device | str, precision: str) -> AbstractContextManager:

@@ -74,12 +74,15 @@ class LearnedSimulator(nn.Module):
                             self_edges=self.config.self_edges)
 
     def forward(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
-                context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None) -> torch.Tensor:
+                context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None,
+                bounds: torch.Tensor | None = None) -> torch.Tensor:
         """Normalised acceleration [N, D] for a window [N, W, D] of positions.
 
         batch [N]: graph index per particle (None: one graph); context [B, C]: raw global context per
-        graph; edge_index: precomputed edges for the window's last positions (searched when None).
+        graph; edge_index: precomputed edges for the window's last positions (searched when None);
+        bounds [D, 2]: the scene's walls when they differ from the training data's (a larger arena).
         """
+        bounds = self.bounds if bounds is None else bounds
         n = window.shape[0]
         if batch is None:
             batch = torch.zeros(n, dtype=torch.long, device=window.device)
@@ -95,12 +98,12 @@ class LearnedSimulator(nn.Module):
                 raise ValueError("this simulator was built for a dataset with a global context; pass context")
             global_context = features.normalise_context(context, norm)
             node_context = global_context.index_select(0, batch)
-        x = features.node_features(window, norm, bounds=self.bounds, radius=self.radius, walls=self.use_walls,
+        x = features.node_features(window, norm, bounds=bounds, radius=self.radius, walls=self.use_walls,
                                    absolute_positions=self.absolute, context=node_context)
         if self.use_type_embedding:
             x = torch.cat([x, self.type_embedding(particle_type)], dim=1)
         e = (features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,
-                                    bounds=self.bounds) if uses_edges else None)
+                                    bounds=bounds) if uses_edges else None)
         out = self.network(x, e, edge_index, batch, num_graphs, global_context)
         if self.config.gravity_bias:  # the network predicts the deviation from free fall
             out = out + (self.gravity - self.acc_mean) / self.acc_std

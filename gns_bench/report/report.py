@@ -266,11 +266,15 @@ def _write(out_dir: Path, lines: list[str]) -> Path:
 def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = collect(sweep, tier)
-    kind = "domain" if not sweep.axes else "ablation"
+    kind = "stress" if sweep.name.startswith("stress-") else "domain" if not sweep.axes else "ablation"
     lines = [f"# {sweep.name} ({tier} tier)", "", f"{sweep.description}. Domain `{sweep.domain}`; paper: "
              f"{sweep.paper_figure or '—'}. MLflow experiment `{sweep.experiment}`; {len(rows)} planned runs, "
              f"{sum(r.ok for r in rows)} finished.", "", budget_statement(rows), ""]
-    if kind == "domain":
+    if kind == "stress":
+        from gns_bench.report.stability import sweep_section
+
+        lines += sweep_section(sweep, rows, out_dir)
+    elif kind == "domain":
         lines += ["## Against the paper (Knowl 5)", "", *domain_table([(sweep, rows)]), ""]
     else:
         lines += ablation_section(sweep, rows, out_dir)
@@ -296,11 +300,15 @@ def write_domains_report(sweeps: list[SweepSpec], tier: str, out_dir: Path) -> P
 def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Path("reports")) -> Path:
     """Write `reports_root/<sweep name>/<tier>/README.md` (+ PNG/GIF) from MLflow; returns the README path.
 
-    `sweep` is a sweep file, a sweep name (`ablation-noise_std`, `domain-goop`), or `domains` for the table
-    across all domain sweeps.
+    `sweep` is a sweep file, a sweep name (`ablation-noise_std`, `domain-goop`), `domains` for the table
+    across all domain sweeps, or `stability` for the stress sweeps' report.
     """
     reports_root = Path(reports_root)
     if str(sweep) == "domains":
         return write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier)
+    if str(sweep) == "stability":
+        from gns_bench.report.stability import write_stability_report
+
+        return write_stability_report(tier, reports_root / "stability" / tier)
     spec = resolve_sweep(sweep)
     return write_sweep_report(spec, tier, reports_root / spec.name / tier)

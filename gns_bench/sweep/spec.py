@@ -187,7 +187,9 @@ def sweep_name(path: Path, sweeps_dir: Path = SWEEPS_DIR) -> str:
         relative = path.resolve().relative_to(sweeps_dir.resolve())
     except ValueError:
         return path.stem
-    folder = relative.parts[0].removesuffix("s") if len(relative.parts) > 1 else ""
+    folder = relative.parts[0] if len(relative.parts) > 1 else ""
+    if folder.endswith("s") and not folder.endswith("ss"):  # domains -> domain, but stress stays stress
+        folder = folder[:-1]
     return f"{folder}-{path.stem}" if folder else path.stem
 
 

@@ -1,0 +1,214 @@
+"""The stability report: the stress sweeps' (`sweeps/stress/`) MLflow runs compiled into markdown + PNG.
+
+Per trained domain: the largest stable horizon and scale, error against time for each stress test, the
+monitors that tripped and where, and frames of each generalisation rollout next to its ground truth.
+Everything is read from MLflow (metrics, tags, and the curves each test logged as `stress/<test>.json`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from gns_bench import tracking
+from gns_bench.evaluate import metrics
+from gns_bench.evaluate.rollout import RolloutResult
+from gns_bench.report import figures
+from gns_bench.report.collect import RunRow, collect
+from gns_bench.report.report import budget, budget_statement, fmt
+from gns_bench.stress.experiments import StressResult
+from gns_bench.stress.plots import plot_stress
+from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
+
+STRESS_PREFIX = "stress-"
+
+
+def stress_sweeps() -> list[SweepSpec]:
+    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.name.startswith(STRESS_PREFIX)]
+
+
+def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
+    """The stress tests a run logged, from its `stress/<test>.json` artifacts."""
+    results = []
+    for name in filter(None, row.tag("stress/tests").split(",")):
+        local = tracking.download_artifacts(row.run_id, f"stress/{name}.json", workdir)
+        if local is None:
+            continue
+        data = json.loads(local.read_text())
+        results.append(StressResult(data["name"], data["metrics"], data["curves"], data["trips"], data["notes"]))
+    return results
+
+
+def _metric(row: RunRow, key: str) -> float:
+    return float(row.record.metrics.get(key, math.nan)) if row.ok else math.nan
+
+
+def stable_cells(row: RunRow) -> tuple[str, str]:
+    """'largest stable horizon' and 'largest stable scale' cells of one run."""
+    steps, length = _metric(row, "stress/horizon/stable_steps"), _metric(row, "stress/horizon/training_length")
+    total = _metric(row, "stress/horizon/steps")
+    if math.isfinite(steps):
+        horizon = f"{steps / length:.2g}x ({steps:.0f} of {total:.0f} steps" + \
+                  (", no monitor tripped)" if steps >= total else ", a monitor stopped it)")
+    else:
+        horizon = "not run"
+    factor = _metric(row, "stress/scale/largest_stable_factor")
+    if math.isfinite(factor):
+        particles = _metric(row, f"stress/scale/x{factor:g}/particles") if factor else math.nan
+        scale = f"{factor:g}x ({particles:,.0f} particles)" if factor else "none stable"
+    else:
+        scale = "not run"
+    return horizon, scale
+
+
+def trips(row: RunRow) -> list[str]:
+    """Every monitor stop recorded on a run: evaluation, stress tests and generalisation rollouts."""
+    return [f"`{key}`: {value}" for key, value in sorted(row.record.tags.items())
+            if key.endswith("rollouts_stopped") or key.endswith("/trips")] if row.record else []
+
+
+def _rollouts(row: RunRow, variant: str, workdir: Path) -> list[RolloutResult]:
+    local = tracking.download_artifacts(row.run_id, f"generalisation/{variant}/{variant}_rollouts.npz", workdir)
+    if local is None:
+        return []
+    with np.load(local) as data:
+        keys = sorted({k.split("/")[0] for k in data.files})
+        return [RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"], data[f"{k}/initial_window"],
+                              data[f"{k}/particle_type"]) for k in keys]
+
+
+def _per_trajectory(row: RunRow, variant: str, workdir: Path) -> list[dict[str, float]]:
+    local = tracking.download_artifacts(row.run_id, f"generalisation/{variant}/{variant}_per_trajectory.csv",
+                                        workdir)
+    if local is None:
+        return []
+    with local.open() as f:
+        return [{k: float(v) for k, v in r.items() if v not in ("", None)} for r in csv.DictReader(f)]
+
+
+def context_figure(rows: list[dict[str, float]], path: Path, held_out: tuple[float, float] | None) -> Path:
+    """Rollout MSE against the per-trajectory context (friction angle), the held-out interval shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.array([r["context"] for r in rows])
+    fig, ax = plt.subplots(figsize=(4.8, 3.2))
+    for key, label in (("rollout_mse", "GNS"), ("baseline_cv_rollout_mse", "constant velocity")):
+        y = np.array([r.get(key, math.nan) for r in rows])
+        order = np.argsort(x)
+        ax.plot(x[order], y[order], "o-", ms=4, lw=1, label=label)
+    if held_out:
+        ax.axvspan(*held_out, color="grey", alpha=0.2, label="held out in training")
+    ax.set_yscale("log")
+    ax.set(xlabel="friction angle (degrees)", ylabel="rollout MSE", title="error against the friction angle")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
+def _held_out(domain: str) -> tuple[float, float] | None:
+    try:
+        from gns_bench.physics.spec import load_domain_spec
+
+        context = load_domain_spec(domain).context
+    except Exception:  # noqa: BLE001 - the tiny domain has no spec file
+        return None
+    return context.exclude[0] if context is not None and context.exclude else None
+
+
+def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: str = "##") -> list[str]:
+    """One stress sweep: budget, stability summary, each test's figure and numbers, generalisation frames."""
+    lines = [f"{level} {sweep.name}: {sweep.description}", "", f"Paper: {sweep.paper_figure or '—'}. Domain "
+             f"`{sweep.domain}`; MLflow experiment `{sweep.experiment}`.", ""]
+    done = [r for r in rows if r.ok]
+    if not done:
+        states = ", ".join(sorted({r.status for r in rows})) or "missing"
+        return lines + [f"**No finished run at this tier ({states}).** Run `nox -s {sweep.name} -- <tier>`.", ""]
+    lines += [f"Budget: {budget(done)}. {budget_statement(done)}", ""]
+    for row in done:
+        horizon, scale = stable_cells(row)
+        lines += [f"Run `{row.run_id}` ({row.planned.name}): largest stable horizon **{horizon}**; largest stable "
+                  f"scale **{scale}**. Tests skipped: {row.tag('stress/skipped') or 'none'}.", ""]
+        stops = trips(row)
+        lines += ["Monitors that stopped rollouts:", "", *(f"- {s}" for s in stops), ""] if stops else \
+            ["No health monitor tripped in any of this run's rollouts.", ""]
+        with tempfile.TemporaryDirectory() as tmp:
+            workdir = Path(tmp)
+            for result in load_results(row, workdir):
+                training = int(_metric(row, "stress/horizon/training_length")) if result.name == "horizon" else None
+                figure = plot_stress(result, out_dir / f"{sweep.name}_{result.name}.png", training_length=training,
+                                     title=f"{sweep.name}: {result.name}")
+                lines += [f"{level}# {result.name}", "", f"![{result.name}]({figure.name})", "",
+                          "| metric | value |", "|---|---|",
+                          *(f"| {k} | {fmt(v)} |" for k, v in sorted(result.metrics.items())), ""]
+                lines += [f"- {note}" for note in result.notes] + ([""] if result.notes else [])
+            lines += generalisation_lines(sweep, row, out_dir, workdir, level)
+    return lines
+
+
+def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: Path, level: str) -> list[str]:
+    lines = []
+    for variant in filter(None, row.tag("generalisation/datasets").split(",")):
+        prefix = f"generalisation/{variant}/"
+        values = {k[len(prefix):]: v for k, v in row.record.metrics.items() if k.startswith(prefix)}
+        lines += [f"{level}# generalisation: {variant}", "",
+                  "| rollout MSE | constant velocity | one-step MSE | OT | MMD | rollouts stopped | trajectories |",
+                  "|---|---|---|---|---|---|---|",
+                  "| " + " | ".join(fmt(values.get(k, math.nan)) for k in (
+                      "rollout_mse", "baseline_cv_rollout_mse", "one_step_mse", "ot", "mmd", "rollout_stopped",
+                      "num_trajectories")) + " |", ""]
+        per_trajectory = _per_trajectory(row, variant, workdir)
+        if per_trajectory and all("context" in r for r in per_trajectory):
+            figure = context_figure(per_trajectory, out_dir / f"{sweep.name}_{variant}_context.png",
+                                    _held_out(sweep.domain))
+            lines += [f"![error against the context]({figure.name})", ""]
+        results = [r for r in _rollouts(row, variant, workdir) if r.predicted.shape[0]]
+        if results:
+            errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.moving_mask)
+                      for r in results]
+            best = int(np.argmin(errors))
+            title = f"{variant}: trajectory {best}, rollout MSE {errors[best]:.3g}"
+            png = figures.rollout_png(results[best], out_dir / f"{sweep.name}_{variant}.png", title)
+            lines += ["Ground truth and GNS at four steps:", "", f"![{variant}]({png.name})", ""]
+    return lines
+
+
+def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | None = None) -> Path:
+    """`reports/stability/<tier>/README.md`: every stress sweep, missing ones marked."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sweeps = stress_sweeps() if sweeps is None else sweeps
+    collected = [(s, collect(s, tier)) for s in sweeps]
+    lines = [f"# Stability and generalisation ({tier} tier)", "",
+             "The paper's stability claims (Knowl 7) and failure modes (Knowl 10), each a stress sweep in "
+             "`sweeps/stress/` run with `nox -s <sweep> -- <tier>`. Tests: `horizon` (rollouts longer than "
+             "training), `precision` (fp64 / fp32 / bf16), `perturbation` (growth of a small initial "
+             "perturbation, model against solver), `scale` (scenes with more particles in larger arenas); "
+             "generalisation rollouts on unseen scenes. Health monitors (non-finite, out of bounds, energy "
+             "blow-up, density collapse) run in every rollout and stop it when they trip.", "",
+             "## Largest stable horizon and scale", "",
+             "| sweep | domain | horizon | scale | monitors tripped | budget | MLflow run |", "|---|---|---|---|---|---|---|"]
+    for sweep, rows in collected:
+        done = [r for r in rows if r.ok]
+        if not done:
+            states = ", ".join(sorted({r.status for r in rows})) or "missing"
+            lines.append(f"| {sweep.name} | {sweep.domain} | **{states}** | **{states}** | — | — | — |")
+        for row in done:
+            horizon, scale = stable_cells(row)
+            lines.append(f"| {sweep.name} | {sweep.domain} | {horizon} | {scale} | {len(trips(row))} | "
+                         f"{budget([row])} | `{row.run_id}` |")
+    lines += [""]
+    for sweep, rows in collected:
+        lines += sweep_section(sweep, rows, out_dir)
+    path = out_dir / "README.md"
+    path.write_text("\n".join(lines).rstrip() + "\n")
+    return path

@@ -1,0 +1,116 @@
+"""Inflow: particles entering a running rollout (the paper's WaterRamps generalisation scene, Knowl 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gns_bench.config import EvalConfig, ModelConfig
+from gns_bench.data.format import DatasetError, Trajectory, load_split, read_metadata, write_dataset
+from gns_bench.evaluate import metrics
+from gns_bench.evaluate.evaluate import evaluate, one_step_mse
+from gns_bench.evaluate.rollout import RolloutState, rollout
+from gns_bench.model.neighbours import radius_graph
+from gns_bench.model.simulator import LearnedSimulator
+
+BIRTHS = (9, 9, 12, 12)  # frames at which the four new particles enter
+
+
+@pytest.fixture(scope="module")
+def simulator(tiny_dataset: Path) -> LearnedSimulator:
+    torch.manual_seed(0)
+    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2),
+                            read_metadata(tiny_dataset), 3e-4).eval()
+
+
+def with_inflow(traj: Trajectory, radius: float, births: tuple[int, ...] = BIRTHS) -> Trajectory:
+    """The trajectory plus new particles entering next to moving ones; before birth each follows a
+    straight prescribed path (its velocity history), as the generators store inflow."""
+    moving = np.flatnonzero(traj.particle_type != 3)[: len(births)]
+    new = traj.position[:, moving].copy()
+    for j, b in enumerate(births):
+        new[:, j] = traj.position[b, moving[j]] + np.array([0.4 * radius, 0.0], np.float32)
+        new[: b, j] -= (np.arange(b, 0, -1)[:, None] * np.array([0.0, 1e-3], np.float32))
+    position = np.concatenate([traj.position, new], axis=1)
+    types = np.concatenate([traj.particle_type, traj.particle_type[moving]])
+    birth = np.concatenate([np.zeros(traj.num_particles, np.int64), np.array(births, np.int64)])
+    return Trajectory(position, types, traj.step_context, birth)
+
+
+def test_particles_absent_before_birth_change_nothing(simulator: LearnedSimulator, tiny_dataset: Path) -> None:
+    traj = load_split(tiny_dataset, "test")[0]
+    inflow = with_inflow(traj, simulator.radius, births=(traj.num_steps - 1,) * 4)  # born after the rollout
+    plain, grown = rollout(simulator, traj), rollout(simulator, inflow)
+    n = traj.num_particles
+    np.testing.assert_allclose(grown.predicted[:, :n], plain.predicted, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(grown.predicted[:, n:], inflow.position[6:, n:])  # they follow the data
+
+
+def test_inflow_adds_particles_with_correct_graphs(simulator: LearnedSimulator, tiny_dataset: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    traj = with_inflow(load_split(tiny_dataset, "test")[0], simulator.radius)
+    n = traj.num_particles - len(BIRTHS)
+    graphs: list[tuple[torch.Tensor, torch.Tensor]] = []
+    build = simulator.build_graph
+
+    def recording(position: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        edges = build(position, batch)
+        graphs.append((position.clone(), edges))
+        return edges
+
+    monkeypatch.setattr(simulator, "build_graph", recording)
+    states: list[RolloutState] = []
+    result = rollout(simulator, traj, hooks=[states.append])
+    w = simulator.config.input_sequence_length
+    for step, (position, edges) in enumerate(graphs):
+        frame = w + step
+        present = traj.birth_step <= frame - 1
+        assert position.shape[0] == int(present.sum())  # exactly the particles present at the input frame
+        expected = radius_graph(position, simulator.radius, None, backend="scipy")
+        assert {tuple(e) for e in edges.T.tolist()} == {tuple(e) for e in expected.T.tolist()}
+    born = [graphs[b - w + 1][0].shape[0] for b in sorted(set(BIRTHS))]
+    assert born == [n + 2, n + 4]
+    # a newborn's first window is its prescribed path; the particles already present keep their own history
+    b = BIRTHS[0]
+    state = states[b + 1 - w]  # the step whose input window ends at frame b
+    np.testing.assert_array_equal(state.window[n].numpy(), traj.position[b - w + 1: b + 1, n])
+    earlier = states[b - w]
+    np.testing.assert_array_equal(state.window[:n, :-1].numpy(), earlier.window[:n, 1:].numpy())
+    # once present, a newborn is predicted by the model, not copied from the data
+    assert not np.allclose(result.predicted[-1, n], traj.position[-1, n], atol=1e-7)
+
+
+def test_inflow_metrics_count_only_present_particles(simulator: LearnedSimulator, tiny_dataset: Path) -> None:
+    traj = with_inflow(load_split(tiny_dataset, "test")[0], simulator.radius)
+    result = rollout(simulator, traj)
+    mask = result.scored_mask()
+    w = simulator.config.input_sequence_length
+    assert mask.shape == result.predicted.shape[:2]
+    n = traj.num_particles - len(BIRTHS)
+    assert not mask[BIRTHS[0] - w, n] and mask[BIRTHS[0] - w + 1, n]
+    error = np.square(result.predicted.astype(np.float64) - result.ground_truth).mean(-1)  # [K, N]
+    expected = sum(error[k][mask[k]].sum() for k in range(len(mask))) / mask.sum()
+    assert metrics.rollout_mse(result.predicted, result.ground_truth, mask) == pytest.approx(expected, rel=1e-9)
+    assert np.isfinite(one_step_mse(simulator, traj, device="cpu"))
+    evaluation = evaluate(simulator, [traj], EvalConfig(distribution_steps=3), progress=False)
+    assert np.isfinite(evaluation.metrics["rollout_mse"]) and np.isfinite(evaluation.metrics["mmd"])
+
+
+def test_birth_step_round_trips_and_is_validated(tiny_dataset: Path, tmp_path: Path) -> None:
+    meta = read_metadata(tiny_dataset)
+    traj = with_inflow(load_split(tiny_dataset, "test")[0], meta.default_connectivity_radius)
+    path = write_dataset(tmp_path / "inflow", meta, {"test": [traj]})
+    loaded = load_split(path, "test")[0]
+    np.testing.assert_array_equal(loaded.birth_step, traj.birth_step)
+    bad = Trajectory(traj.position, traj.particle_type, traj.step_context, traj.birth_step + traj.num_steps)
+    write_dataset(tmp_path / "bad", meta, {"test": [traj]})
+    import h5py
+
+    with h5py.File(tmp_path / "bad" / "test.h5", "a") as f:
+        del f["00000/birth_step"]
+        f["00000"].create_dataset("birth_step", data=bad.birth_step)
+    with pytest.raises(DatasetError, match="birth_step"):
+        load_split(tmp_path / "bad", "test")
