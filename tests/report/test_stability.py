@@ -1,0 +1,84 @@
+"""The stability report and `gns-bench stress`, on a stress sweep over the tiny domain (no dataset variants:
+the tests that need one are skipped and the report says so)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import matplotlib.image
+import mlflow
+import pytest
+
+from gns_bench import tracking
+from gns_bench.cli import main
+from gns_bench.report.stability import write_stability_report
+from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
+
+STRESS = '''description = "tiny stress"
+domain = "tiny"
+paper_figure = "Knowl 7"
+
+[config.stress]
+tests = ["precision", "horizon"]
+
+[tiers.smoke.config.model]
+latent_size = 8
+mlp_hidden_size = 8
+message_passing_steps = 1
+
+[tiers.smoke.config.stress]
+rollout_steps = 6
+max_trajectories = 1
+'''
+
+
+@pytest.fixture(scope="module")
+def stressed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("stability")
+    (root / "sweeps" / "stress").mkdir(parents=True)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", root / "sweeps" / "tiers.toml")
+    path = root / "sweeps" / "stress" / "tiny.toml"
+    path.write_text(STRESS)
+    outcomes = run_sweep(load_sweep(path), "smoke", data_root=root / "data", runs_root=root / "runs",
+                         progress=False, echo=lambda _: None)
+    assert [o.status for o in outcomes] == ["FINISHED"], [o.error for o in outcomes]
+    return {"sweep": path, "root": root, "run_id": outcomes[0].run_id}
+
+
+def test_stress_results_are_logged_with_the_training_run(stressed: dict[str, Path]) -> None:
+    tracking.configure()
+    run = mlflow.get_run(stressed["run_id"])
+    metrics, tags = run.data.metrics, run.data.tags
+    assert metrics["stress/precision/divergence_final_fp32"] < metrics["stress/precision/divergence_final_bf16"]
+    assert "horizon: no dataset variant 'tiny-long'" in tags["stress/skipped"]
+    assert tags["stress/tests"] == "precision"
+
+
+def test_stability_report_shows_tests_skips_and_figures(stressed: dict[str, Path], tmp_path: Path) -> None:
+    sweep = load_sweep(stressed["sweep"])
+    missing = load_sweep(SWEEPS_DIR / "stress" / "boxbath.toml")  # never run in this store: shown as missing
+    readme = write_stability_report("smoke", tmp_path, [sweep, missing])
+    text = readme.read_text()
+    assert f"| {sweep.name} | tiny | not run | not run | 0 |" in text
+    assert f"| {missing.name} | boxbath | **missing** |" in text
+    assert f"`{stressed['run_id']}`" in text and "no dataset variant 'tiny-long'" in text
+    figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert figures == [f"{sweep.name}_precision.png"]
+    image = matplotlib.image.imread(tmp_path / figures[0])
+    assert min(image.shape[:2]) > 100 and image.std() > 0
+
+
+def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
+    run_dir = next((stressed["root"] / "runs").rglob("checkpoint.pt")).parent
+    dataset = stressed["root"] / "data" / "tiny-smoke-s0"
+    code = main(["stress", str(run_dir), str(dataset), 'stress.tests=["precision"]', "stress.rollout_steps=4",
+                 'stress.precisions=["fp32","bf16"]', "--experiment", "stress-cli"])
+    out = capsys.readouterr().out
+    assert code == 0 and "stress/precision/divergence_final_bf16" in out
+    runs = mlflow.search_runs(experiment_names=["stress-cli"], output_format="list")
+    assert [r.data.tags["kind"] for r in runs] == ["stress"]
+    assert main(["stress", str(run_dir), str(dataset), "model.latent_size=4"]) == 2
+    assert main(["stress", str(run_dir), str(dataset), 'stress.tests=["bogus"]']) == 2
