@@ -189,7 +189,8 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
-                                 "'domains' for the table across all domain sweeps, or 'stability' for the stress sweeps")
+                                 "'domains' for the table across all domain sweeps, or 'stability' for the "
+                                 "stress sweeps")
     p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
     p.add_argument("--reports-root", type=Path, default=Path("reports"))
 

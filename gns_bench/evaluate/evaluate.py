@@ -17,6 +17,8 @@ from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.monitors import default_monitors
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
+from gns_bench.model import features
+from gns_bench.model.precision import autocast, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 ONE_STEP_BATCH = 16  # windows per forward pass when measuring one-step error
@@ -62,29 +64,41 @@ def distributional_metrics(result: RolloutResult, config: EvalConfig, radius: fl
 
 @torch.no_grad()
 def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_windows: int | None = None,
-                 device: torch.device | str = "cpu") -> float:
-    """Mean over windows, moving particles and dims of (predicted - true next position)^2, no noise."""
+                 device: torch.device | str = "cpu", precision: str = "fp32") -> float:
+    """Mean over windows, moving particles and dims of (predicted - true next position)^2, no noise;
+    the network in `precision` (fp32, bf16 autocast, or the fp64 reference)."""
+    with network_dtype(simulator, dtype_of(precision)):
+        return _one_step_mse(simulator, trajectory, max_windows, device, precision)
+
+
+def _one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_windows: int | None,
+                  device: torch.device | str, precision: str) -> float:
     w = simulator.config.input_sequence_length
     frames = list(range(w - 1, trajectory.num_steps - 1))
     if max_windows is not None and len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
     if trajectory.has_inflow:  # each window holds only the particles present at its last input frame
-        errors = [_one_step_errors(simulator, trajectory.select(trajectory.active(t)), [t], w, device)
+        errors = [_one_step_errors(simulator, trajectory.select(trajectory.active(t)), [t], w, device, precision)
                   for t in frames]
         return sum(total for total, _ in errors) / sum(count for _, count in errors)
-    total, count = _one_step_errors(simulator, trajectory, frames, w, device)
+    total, count = _one_step_errors(simulator, trajectory, frames, w, device, precision)
     return total / count
 
 
 def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames: list[int], w: int,
-                     device: torch.device | str) -> tuple[float, int]:
+                     device: torch.device | str, precision: str = "fp32") -> tuple[float, int]:
     """Sum and count of squared one-step errors of the moving particles over windows ending at `frames`."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
     total, count = 0.0, 0
     for start in range(0, len(frames), ONE_STEP_BATCH):
         chunk = frames[start: start + ONE_STEP_BATCH]
         batch = make_batch([trajectory], [(0, t) for t in chunk], w).to(device)
-        predicted = simulator.predict_next_position(batch.window, batch.particle_type, batch.batch, batch.context)
+        dtype = dtype_of(precision)
+        context = batch.context.to(dtype) if batch.context is not None else None
+        with autocast(device, precision):
+            acceleration = simulator.denormalise_acceleration(
+                simulator(batch.window.to(dtype), batch.particle_type, batch.batch, context).to(dtype))
+        predicted = features.integrate(batch.window.to(dtype), acceleration)
         error = (predicted - batch.target).double().square().reshape(len(chunk), -1, trajectory.position.shape[2])
         error = error[:, moving.to(error.device)]
         total += float(error.sum())

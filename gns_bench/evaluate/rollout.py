@@ -6,8 +6,7 @@ state and may stop a rollout by raising `RolloutStopped` (health monitors build 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +15,7 @@ import torch
 from gns_bench.data.format import Trajectory
 from gns_bench.model import features
 from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
-from gns_bench.model.precision import autocast
+from gns_bench.model.precision import autocast, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 
@@ -83,7 +82,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     w = simulator.config.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
-    dtype = torch.float64 if precision == "fp64" else torch.float32
+    dtype = dtype_of(precision)
     truth = torch.from_numpy(trajectory.position).to(device, dtype)  # [T, N, D]
     particle_type = torch.from_numpy(trajectory.particle_type).to(device)
     kinematic = kinematic_mask(particle_type)[:, None]
@@ -103,7 +102,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     elif reuse_static_edges and simulator.network.uses_edges and bool(static.any()) and not bool(static.all()):
         neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.config.neighbour_backend,
                                            simulator.config.self_edges)
-    with _network_dtype(simulator, dtype):
+    with network_dtype(simulator, dtype):
         for step in range(num_steps):
             frame = w + step
             step_context = context[frame - 1: frame] if context is not None else None
@@ -140,16 +139,3 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     return RolloutResult(stacked, trajectory.position[w: w + num_steps], trajectory.position[:w],
                          trajectory.particle_type, stopped_at, reason, stopped_by,
                          trajectory.birth_step if trajectory.has_inflow else None)
-
-
-@contextmanager
-def _network_dtype(simulator: LearnedSimulator, dtype: torch.dtype) -> Iterator[None]:
-    """Run the simulator's parameters and buffers in `dtype` (float64 for the fp64 reference), then restore."""
-    if dtype == torch.float32:
-        yield
-        return
-    simulator.to(dtype)
-    try:
-        yield
-    finally:
-        simulator.to(torch.float32)

@@ -6,9 +6,11 @@ positions never round to bf16's 8-bit mantissa.
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager, nullcontext
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 
 import torch
+from torch import nn
 
 PRECISIONS = ("fp32", "bf16", "fp64")  # fp64: rollouts only, the caller casts the network (a reference on CPU)
 
@@ -19,3 +21,22 @@ def autocast(device: torch.device | str, precision: str) -> AbstractContextManag
     if precision == "bf16":
         return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
     return nullcontext()
+
+
+def dtype_of(precision: str) -> torch.dtype:
+    """The dtype positions and the network's parameters use: float64 for the fp64 reference, else float32."""
+    return torch.float64 if precision == "fp64" else torch.float32
+
+
+@contextmanager
+def network_dtype(module: nn.Module, dtype: torch.dtype) -> Iterator[None]:
+    """Run a module's parameters and buffers in `dtype` (float64 for the fp64 reference), then restore
+    float32 (exact: the float32 values survive the round trip)."""
+    if dtype == torch.float32:
+        yield
+        return
+    module.to(dtype)
+    try:
+        yield
+    finally:
+        module.to(torch.float32)

@@ -196,7 +196,8 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
              "generalisation rollouts on unseen scenes. Health monitors (non-finite, out of bounds, energy "
              "blow-up, density collapse) run in every rollout and stop it when they trip.", "",
              "## Largest stable horizon and scale", "",
-             "| sweep | domain | horizon | scale | monitors tripped | budget | MLflow run |", "|---|---|---|---|---|---|---|"]
+             "| sweep | domain | horizon | scale | monitors tripped | budget | MLflow run |",
+             "|---|---|---|---|---|---|---|"]
     for sweep, rows in collected:
         done = [r for r in rows if r.ok]
         if not done:

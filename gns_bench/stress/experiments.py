@@ -21,11 +21,12 @@ import numpy as np
 
 from gns_bench.data.format import Trajectory
 from gns_bench.evaluate import metrics
-from gns_bench.evaluate.evaluate import health_monitors
+from gns_bench.evaluate.evaluate import health_monitors, one_step_mse
 from gns_bench.evaluate.rollout import RolloutResult, rollout
 from gns_bench.model.simulator import LearnedSimulator
 
 RIGID_PARTICLE_TYPE = 0  # BOXBATH's rigid cube
+ONE_STEP_WINDOWS = 50  # windows per trajectory for the one-step error of each precision
 
 
 @dataclass
@@ -142,6 +143,8 @@ def precision(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], p
         for i, r in enumerate(results[name]):
             out.trips += _trip(name, i, r)
     for name in precisions:
+        out.metrics[f"one_step_mse_{name}"] = float(np.mean([
+            one_step_mse(simulator, t, ONE_STEP_WINDOWS, device, name) for t in trajectories]))
         out.curves[f"mse_{name}"] = _stack([per_step_mse(r, length) for r in results[name]])
         out.metrics[f"rollout_mse_{name}"] = float(np.nanmean(out.curves[f"mse_{name}"]))
         out.metrics[f"seconds_{name}"] = seconds[name]
@@ -181,7 +184,7 @@ def perturbation(simulator: LearnedSimulator, trajectories: Sequence[Trajectory]
     length = max(t.num_steps - w for t in trajectories) if steps is None else steps
     rng = np.random.default_rng(seed)
     model_d = []
-    for i, traj in enumerate(trajectories):
+    for traj in trajectories:
         base = _run(simulator, traj, length, device, monitors=False)
         moved = _run(simulator, perturb_initial_window(traj, std, w, rng), length, device, monitors=False)
         k = min(base.predicted.shape[0], moved.predicted.shape[0])
