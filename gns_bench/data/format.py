@@ -266,24 +266,18 @@ def _read_group(path: Path, key: str, group: Any) -> Trajectory:
             arrays[name] = group[name][()]
         except Exception as exc:  # h5py raises OSError, KeyError or RuntimeError on corrupt chunks
             raise DatasetError(path, f"unreadable ({exc})", key, name) from exc
-    pos, types = np.asarray(arrays["position"]), np.asarray(arrays["particle_type"])
-    if not np.issubdtype(pos.dtype, np.floating):
-        raise DatasetError(path, f"expected float32, got {pos.dtype}", key, "position")
-    if not np.issubdtype(types.dtype, np.integer):
-        raise DatasetError(path, f"expected int64, got {types.dtype}", key, "particle_type")
-    ctx = arrays.get("step_context")
-    if ctx is not None:
-        ctx = np.asarray(ctx)
-        if not np.issubdtype(ctx.dtype, np.floating):
-            raise DatasetError(path, f"expected float32, got {ctx.dtype}", key, "step_context")
-        ctx = ctx.astype(np.float32)
-    birth = arrays.get("birth_step")
-    if birth is not None:
-        birth = np.asarray(birth)
-        if not np.issubdtype(birth.dtype, np.integer):
-            raise DatasetError(path, f"expected int64, got {birth.dtype}", key, "birth_step")
-        birth = birth.astype(np.int64)
-    return Trajectory(pos.astype(np.float32), types.astype(np.int64), ctx, birth)
+    def typed(name: str, kind: type, dtype: type) -> np.ndarray | None:
+        """The field as `dtype`, if present; a DatasetError when it is not of `kind` (floating/integer)."""
+        if name not in arrays:
+            return None
+        array = np.asarray(arrays[name])
+        if not np.issubdtype(array.dtype, kind):
+            raise DatasetError(path, f"expected {np.dtype(dtype).name}, got {array.dtype}", key, name)
+        return array.astype(dtype)
+
+    pos, types = typed("position", np.floating, np.float32), typed("particle_type", np.integer, np.int64)
+    ctx, birth = typed("step_context", np.floating, np.float32), typed("birth_step", np.integer, np.int64)
+    return Trajectory(pos, types, ctx, birth)
 
 
 def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,

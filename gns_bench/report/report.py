@@ -218,8 +218,9 @@ def time_section(rows: list[RunRow], out_dir: Path, label=lambda r: r.planned.na
             f"![time against error]({figure.name})", ""]
 
 
-def _load_rollouts(row: RunRow, workdir: Path) -> list[RolloutResult]:
-    local = tracking.download_artifacts(row.run_id, f"evaluation/{row.split}_rollouts.npz", workdir)
+def load_rollouts(run_id: str, artifact_path: str, workdir: Path) -> list[RolloutResult]:
+    """The rollouts (with their ground truth) a run logged as an npz artifact; none when it has no such file."""
+    local = tracking.download_artifacts(run_id, artifact_path, workdir)
     if local is None:
         return []
     with np.load(local) as data:
@@ -237,7 +238,8 @@ def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
         return lines + ["No finished run with rollouts.", ""]
     row = done[0]
     with tempfile.TemporaryDirectory() as tmp:
-        results = [r for r in _load_rollouts(row, Path(tmp)) if r.predicted.shape[0]]
+        results = [r for r in load_rollouts(row.run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
+                   if r.predicted.shape[0]]
     if not results:
         return lines + [f"Run `{row.run_id}` logged no rollouts.", ""]
     errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.moving_mask)

@@ -17,10 +17,9 @@ import numpy as np
 
 from gns_bench import tracking
 from gns_bench.evaluate import metrics
-from gns_bench.evaluate.rollout import RolloutResult
 from gns_bench.report import figures
 from gns_bench.report.collect import RunRow, collect
-from gns_bench.report.report import budget, budget_statement, fmt
+from gns_bench.report.report import budget, budget_statement, fmt, load_rollouts
 from gns_bench.stress.experiments import StressResult
 from gns_bench.stress.plots import plot_stress
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
@@ -70,16 +69,6 @@ def trips(row: RunRow) -> list[str]:
     """Every monitor stop recorded on a run: evaluation, stress tests and generalisation rollouts."""
     return [f"`{key}`: {value}" for key, value in sorted(row.record.tags.items())
             if key.endswith("rollouts_stopped") or key.endswith("/trips")] if row.record else []
-
-
-def _rollouts(row: RunRow, variant: str, workdir: Path) -> list[RolloutResult]:
-    local = tracking.download_artifacts(row.run_id, f"generalisation/{variant}/{variant}_rollouts.npz", workdir)
-    if local is None:
-        return []
-    with np.load(local) as data:
-        keys = sorted({k.split("/")[0] for k in data.files})
-        return [RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"], data[f"{k}/initial_window"],
-                              data[f"{k}/particle_type"]) for k in keys]
 
 
 def _per_trajectory(row: RunRow, variant: str, workdir: Path) -> list[dict[str, float]]:
@@ -172,7 +161,8 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
             figure = context_figure(per_trajectory, out_dir / f"{sweep.name}_{variant}_context.png",
                                     _held_out(sweep.domain))
             lines += [f"![error against the context]({figure.name})", ""]
-        results = [r for r in _rollouts(row, variant, workdir) if r.predicted.shape[0]]
+        npz = f"generalisation/{variant}/{variant}_rollouts.npz"
+        results = [r for r in load_rollouts(row.run_id, npz, workdir) if r.predicted.shape[0]]
         if results:
             errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.moving_mask)
                       for r in results]
