@@ -180,6 +180,8 @@ def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:
         arrays[f"{i:05d}/ground_truth"] = r.ground_truth
         arrays[f"{i:05d}/initial_window"] = r.initial_window
         arrays[f"{i:05d}/particle_type"] = r.particle_type
+        if r.birth_step is not None:
+            arrays[f"{i:05d}/birth_step"] = r.birth_step
     path = Path(path)
     np.savez_compressed(path, **arrays)
     return path

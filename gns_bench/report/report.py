@@ -226,7 +226,9 @@ def load_rollouts(run_id: str, artifact_path: str, workdir: Path) -> list[Rollou
     with np.load(local) as data:
         keys = sorted({k.split("/")[0] for k in data.files})
         return [RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"], data[f"{k}/initial_window"],
-                              data[f"{k}/particle_type"]) for k in keys]
+                              data[f"{k}/particle_type"],
+                              birth_step=data[f"{k}/birth_step"] if f"{k}/birth_step" in data.files else None)
+                for k in keys]
 
 
 def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
@@ -242,7 +244,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
                    if r.predicted.shape[0]]
     if not results:
         return lines + [f"Run `{row.run_id}` logged no rollouts.", ""]
-    errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.moving_mask)
+    errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
               for r in results]
     lines.append(f"From run `{row.run_id}` ({row.planned.name}, lowest rollout MSE), split '{row.split}': "
                  "ground truth above / left, GNS below / right.")

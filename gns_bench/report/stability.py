@@ -164,7 +164,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
         results = [r for r in load_rollouts(row.run_id, npz, workdir) if r.predicted.shape[0]]
         if results:
-            errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.moving_mask)
+            errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
                       for r in results]
             best = int(np.argmin(errors))
             title = f"{variant}: trajectory {best}, rollout MSE {errors[best]:.3g}"
