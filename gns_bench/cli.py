@@ -15,8 +15,10 @@ CONFIGS = Path(__file__).resolve().parent / "configs"
 
 
 def _add_generate(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("generate", help="generate a dataset for a domain (the 16 paper domains, or 'tiny')")
-    p.add_argument("domain", help="domain id, e.g. waterdrop, sand-3d, boxbath, or tiny (no physics engine)")
+    p = sub.add_parser("generate", help="generate a dataset for a domain (the 16 paper domains, their variants, "
+                                        "or 'tiny')")
+    p.add_argument("domain", help="domain id (e.g. waterdrop, sand-3d, boxbath, or tiny: no physics engine) or a "
+                                  "variant in datasets/variants/ (e.g. waterramps-inflow); 'list' prints them all")
     p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"],
                    help="smoke: seconds (tests); small: ~30 min on 2 cores; paper: the paper's sizes")
     p.add_argument("--seed", type=int, default=0)
@@ -29,6 +31,12 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
     from gns_bench.data.generate import ensure_dataset
 
+    if args.domain == "list":
+        from gns_bench.physics.spec import list_domains, list_variants
+
+        print("domains:  " + " ".join(["tiny", *list_domains()]))
+        print("variants: " + " ".join(list_variants()))
+        return
     if args.overwrite and args.out is not None and args.out.exists():
         shutil.rmtree(args.out)
     path = ensure_dataset(args.domain, args.tier, args.seed, out=args.out)

@@ -1,4 +1,5 @@
-"""One entry point for datasets by domain id: the built-in `tiny` domain or a physics domain."""
+"""One entry point for datasets by domain id: the built-in `tiny` domain, a physics domain
+(`datasets/<id>.toml`) or a variant of one (`datasets/variants/<id>.toml`)."""
 
 from __future__ import annotations
 

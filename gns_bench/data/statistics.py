@@ -43,8 +43,13 @@ def compute_statistics(trajectories: Iterable[Trajectory]) -> dict[str, list[flo
         if pos.shape[1] == 0:
             continue
         v = np.diff(pos, axis=0)
+        a = np.diff(v, axis=0)
+        if traj.birth_step is not None:  # inflow: only the motion after a particle enters counts
+            birth = traj.birth_step[moving]
+            v = v[np.arange(1, len(v) + 1)[:, None] > birth[None]]  # v_t = p_t - p_{t-1} with t - 1 >= birth
+            a = a[np.arange(1, len(a) + 1)[:, None] > birth[None]]
         vel.add(v)
-        acc.add(np.diff(v, axis=0))
+        acc.add(a)
         if traj.step_context is not None:
             ctx.add(traj.step_context)
     stats = {}

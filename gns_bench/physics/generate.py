@@ -1,8 +1,10 @@
-"""Generate a whole dataset of one domain at one tier: train/valid/test and `metadata.json`.
+"""Generate a whole dataset of one domain (or variant) at one tier: train/valid/test and `metadata.json`.
 
 Each trajectory's randomness comes from its own generator seeded by (domain, seed, split, index), so a
 run cut off and resumed (DatasetWriter keeps the complete trajectories of `<out>.partial/`) produces
-exactly the files an uninterrupted run would. Statistics are computed from the generated train split.
+exactly the files an uninterrupted run would. A variant uses its base domain's id here, so its trajectory
+i starts as the base's does. Statistics are computed from the generated train split (a variant without
+one: its first non-empty split).
 """
 
 from __future__ import annotations
@@ -60,9 +62,9 @@ def _simulate_with_redraws(solver: Any, spec: DomainSpec, tier: str, seed: int, 
     tier_spec = spec.tier(tier)
     failures = []
     for attempt in range(MAX_ATTEMPTS):
-        rng = trajectory_rng(spec.id, seed, split, index, attempt)
+        rng = trajectory_rng(spec.rng_domain, seed, split, index, attempt)
         try:
-            traj = solver.simulate(spec.for_split(split), tier, rng)
+            traj = solver.simulate(spec.for_trajectory(split, index), tier, rng)
             check_trajectory(traj, spec, tier_spec.sequence_length, where)
             return traj
         except RuntimeError as exc:  # includes GenerationError from the checks
@@ -99,12 +101,17 @@ def check_trajectory(traj: Trajectory, spec: DomainSpec, sequence_length: int, w
                               f"{pos.min(axis=(0, 1)).tolist()} to {pos.max(axis=(0, 1)).tolist()})")
     if (spec.context is None) != (traj.step_context is None):
         raise GenerationError(f"{where}: step_context must be given exactly when the spec has [context]")
+    birth = traj.birth_step
+    if birth is not None and (birth.shape != (pos.shape[1],) or birth.min(initial=0) < 0
+                              or birth.max(initial=0) > sequence_length):
+        raise GenerationError(f"{where}: birth_step must hold one frame in [0, {sequence_length}] per "
+                              f"particle, got shape {birth.shape}")
 
 
 def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | None = None,
                      progress: bool = True) -> Path:
     """Generate (or resume, or return unchanged if complete) `out`, default `data/<domain>-<tier>-s<seed>`."""
-    spec = load_domain_spec(domain)
+    spec = load_domain_spec(domain).for_tier(tier)
     tier_spec = spec.tier(tier)
     out = Path(out) if out is not None else dataset_path(domain, tier, seed)
     if (out / "metadata.json").is_file():
@@ -133,14 +140,18 @@ def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | No
     if bar is not None:
         bar.close()
 
-    stats = compute_statistics(iter_split(writer.partial_dir, "train"))
+    stats_split = next(split for split in SPLITS if tier_spec.trajectories[split])
+    stats = compute_statistics(iter_split(writer.partial_dir, stats_split))
+    generator = {"name": GENERATOR_NAME, "version": _version(), "domain": domain, "tier": tier, "seed": seed,
+                 "solver": spec.solver}
+    if spec.base is not None:
+        generator.update(base=spec.base, variant=spec.id, statistics_split=stats_split)
     meta = Metadata(
         bounds=spec.bounds, sequence_length=tier_spec.sequence_length,
         default_connectivity_radius=spec.connectivity_radius, dim=spec.dim, dt=spec.dt, **stats,
         name=spec.name, particle_types=dict(spec.particle_types), walls=spec.walls,
         gravity=spec.gravity_per_step2,
-        generator={"name": GENERATOR_NAME, "version": _version(), "domain": domain, "tier": tier,
-                   "seed": seed, "solver": spec.solver},
+        generator=generator,
     )
     path = writer.finish(meta)
     if progress:

@@ -4,6 +4,15 @@
 The solver substep follows the CFL condition dt_sub <= cfl * dx / (c + v_max), with c the fastest
 elastic wave speed of the domain's materials, so that the stored frames keep the domain's `dt` exactly
 (dt = substeps * dt_sub).
+
+The background grid has `grid` cells per unit length and covers [0, ceil(upper bound)] in each dimension:
+the unit square (cube) for the paper's domains, [0, 8] x [0, 4] for the 8.0 x 4.0 arena of the inflow
+generalisation scene (Knowl 7).
+
+Inflow (scenes.py `inflow`): emitted particles are preallocated and inactive (mpm_kernels.INACTIVE) until
+their birth frame, when they appear at the nozzle with the stream's velocity. Their stored positions before
+birth are a prescribed path (`prebirth_path`), which gives a newborn particle the velocity history the
+learned simulator's input window needs.
 """
 
 from __future__ import annotations
@@ -17,8 +26,9 @@ import numpy as np
 import taichi as ti
 
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
-from gns_bench.physics.mpm_kernels import GOOP, SAND, WATER, build_kernels
-from gns_bench.physics.scenes import MpmScene, build_scene
+from gns_bench.physics.inflow import prebirth_path
+from gns_bench.physics.mpm_kernels import GOOP, INACTIVE, SAND, WATER, build_kernels
+from gns_bench.physics.scenes import MpmScene, build_scene, scene_params
 from gns_bench.physics.spec import DomainSpec
 from gns_bench.physics.taichi_runtime import ensure_taichi
 
@@ -87,11 +97,18 @@ def material_params(spec: DomainSpec) -> tuple[MaterialParams, dict[str, int]]:
     return MaterialParams(**merged), models
 
 
+def grid_nodes(bounds: list[list[float]], grid: int) -> tuple[int, ...]:
+    """Grid nodes per dimension: `grid` cells per unit length over [0, ceil(upper bound)]."""
+    if any(lo < 0.0 for lo, _ in bounds):
+        raise ValueError(f"MPM bounds {bounds} must lie in the positive quadrant: the grid starts at 0")
+    return tuple(grid * max(1, math.ceil(hi)) + 1 for _, hi in bounds)
+
+
 class MpmRunner:
     """Holds the particle and grid arrays of one simulation and advances it frame by frame."""
 
-    def __init__(self, scene: MpmScene, params: MaterialParams, *, grid: int, gravity: list[float],
-                 frame_dt: float, cfl: float, max_speed: float, wall_friction: float):
+    def __init__(self, scene: MpmScene, params: MaterialParams, *, grid: int, bounds: list[list[float]],
+                 gravity: list[float], frame_dt: float, cfl: float, max_speed: float, wall_friction: float):
         ensure_taichi()
         self.scene, self.params = scene, params
         self.dim = dim = scene.position.shape[1]
@@ -110,7 +127,7 @@ class MpmRunner:
         self.F = ti.ndarray(mat, n)
         self.tau = ti.ndarray(mat, n)
         self.material = ti.ndarray(ti.i32, n)
-        shape = (grid + 1,) * dim
+        shape = grid_nodes(bounds, grid)
         self.grid_p = ti.ndarray(ti.types.vector(dim, ti.i64), shape)
         self.grid_m = ti.ndarray(ti.i64, shape)
         self.grid_v = ti.ndarray(vec, shape)
@@ -121,8 +138,8 @@ class MpmRunner:
         self.C.from_numpy(np.zeros((n, dim, dim), np.float32))
         self.F.from_numpy(np.broadcast_to(np.eye(dim, dtype=np.float32), (n, dim, dim)).copy())
         self.tau.from_numpy(np.zeros((n, dim, dim), np.float32))
-        self.material.from_numpy(scene.material.astype(np.int32))
-        sdf, normal = scene.obstacle_sdf(grid)
+        self.material.from_numpy(np.where(scene.birth_step > 0, INACTIVE, scene.material).astype(np.int32))
+        sdf, normal = scene.obstacle_sdf(grid, shape)
         self.sdf.from_numpy(sdf.astype(np.float32))
         self.normal.from_numpy(normal.astype(np.float32))
         self.kernel = build_kernels(dim)
@@ -144,23 +161,37 @@ class MpmRunner:
     def positions(self) -> np.ndarray:
         return self.x.to_numpy()
 
+    def emit(self, born: np.ndarray) -> None:
+        """Give the inflow particles `born` (indices) their material: from now on they move. Their position
+        and velocity are the scene's (the nozzle row and the stream's velocity); C = 0, F = I and tau = 0
+        are still their initial values, as an inactive particle is never updated."""
+        for array, values in ((self.x, self.scene.position), (self.v, self.scene.velocity),
+                              (self.material, self.scene.material)):
+            host = array.to_numpy()
+            host[born] = values[born]
+            array.from_numpy(host)
+
 
 def run_scene(scene: MpmScene, params: MaterialParams, *, grid: int, gravity: list[float], frame_dt: float,
               frames: int, bounds: list[list[float]], cfl: float = 0.4, max_speed: float = 5.0,
               wall_friction: float = 0.0, label: str = "mpm") -> np.ndarray:
     """Simulate `frames` stored frames after the initial one; returns material positions [frames+1, N, D].
 
-    Raises SimulationError as soon as a frame holds NaN or a particle outside `bounds` (by more than
+    An inflow particle sits at its birth position until it is born (`prebirth_path` then rewrites those
+    frames). Raises SimulationError as soon as a frame holds NaN or a particle outside `bounds` (by more than
     half a grid cell, the reach of the wall boundary condition).
     """
-    runner = MpmRunner(scene, params, grid=grid, gravity=gravity, frame_dt=frame_dt, cfl=cfl,
+    runner = MpmRunner(scene, params, grid=grid, bounds=bounds, gravity=gravity, frame_dt=frame_dt, cfl=cfl,
                        max_speed=max_speed, wall_friction=wall_friction)
+    births = {int(b): np.flatnonzero(scene.birth_step == b) for b in np.unique(scene.birth_step) if b > 0}
     lo, hi = np.asarray(bounds)[:, 0], np.asarray(bounds)[:, 1]
     tol = 0.5 / grid
     out = np.empty((frames + 1, *scene.position.shape), np.float32)
     out[0] = scene.position
     for t in range(1, frames + 1):
         runner.advance(frame_dt)
+        if t in births:
+            runner.emit(births[t])
         pos = runner.positions()
         if not np.all(np.isfinite(pos)):
             raise SimulationError(f"{label}: NaN in particle positions at stored frame {t}")
@@ -177,7 +208,7 @@ def run_scene(scene: MpmScene, params: MaterialParams, *, grid: int, gravity: li
 class MpmSettings:
     """The `[mpm]` table and the tier's `grid`, validated: no solver default hides deeper down."""
 
-    grid: int  # cells across the unit square/cube (tier key `grid`)
+    grid: int  # cells per unit length (tier key `grid`): across the unit square/cube
     cfl: float  # solver substep = cfl * dx / (wave speed + max_speed)
     max_speed: float  # particle speed the substep must resolve, on top of the wave speed
     wall_friction: float  # Coulomb friction coefficient of walls and obstacles
@@ -193,10 +224,10 @@ class MpmSettings:
             raise ValueError(f"{spec.path}: key 'mpm.{key}': {'unknown' if unknown else 'missing'}; "
                              f"[mpm] takes exactly {list(names)}")
         tier_params = spec.tier(tier_name).params
-        extra = sorted(set(tier_params) - {"grid", "max_particles", "scene"})
+        extra = sorted(set(tier_params) - {"grid", "max_particles", "scene", "bounds"})
         if extra:
             raise ValueError(f"{spec.path}: key 'tiers.{tier_name}.{extra[0]}': unknown; an MPM tier takes "
-                             "grid, max_particles and scene besides the trajectory counts")
+                             "grid, max_particles, scene and bounds besides the trajectory counts")
         grid = tier_params.get("grid")
         if not (isinstance(grid, int) and grid >= 8):
             raise ValueError(f"{spec.path}: key 'tiers.{tier_name}.grid': expected an integer >= 8, "
@@ -206,6 +237,7 @@ class MpmSettings:
 
 def simulate(spec: DomainSpec, tier_name: str, rng: np.random.Generator) -> Trajectory:
     """One trajectory of an MPM domain at the given tier, its randomness drawn from `rng`."""
+    spec = spec.for_tier(tier_name)
     tier = spec.tier(tier_name)
     params, models = material_params(spec)
     context = None
@@ -221,11 +253,16 @@ def simulate(spec: DomainSpec, tier_name: str, rng: np.random.Generator) -> Traj
     material_pos = run_scene(scene, params, grid=settings.grid, gravity=spec.gravity, frame_dt=spec.dt,
                              frames=frames, bounds=spec.bounds, cfl=settings.cfl, max_speed=settings.max_speed,
                              wall_friction=settings.wall_friction, label=f"{spec.id}/{tier_name}")
+    birth_step = None
+    if np.any(scene.birth_step > 0):
+        prebirth_path(material_pos, scene.birth_step, scene.velocity, spec.dt)
     kinematic = scene.kinematic_positions(spec.dt, frames)  # [T, K, D]
     position = np.concatenate([material_pos, kinematic], axis=1).astype(np.float32)
     types = np.concatenate([scene.particle_type,
                             np.full(kinematic.shape[1], KINEMATIC_PARTICLE_TYPE)]).astype(np.int64)
+    if "inflow" in scene_params(spec, tier):  # kinematic particles are there from the start
+        birth_step = np.concatenate([scene.birth_step, np.zeros(kinematic.shape[1], np.int64)])
     step_context = None
     if context is not None:
         step_context = np.full((frames + 1, 1), context, np.float32)
-    return Trajectory(position, types, step_context)
+    return Trajectory(position, types, step_context, birth_step)

@@ -12,6 +12,11 @@ Materials (all with density 1 in normalised units):
            animation", eqs. 26-28), cohesionless, friction angle a parameter;
   2 goop:  the same Hencky elasticity with a von Mises yield surface and Bingham-style viscous relaxation
            of the deviatoric strain beyond it (viscoplastic, in the spirit of Yue et al. 2015).
+ -1 inactive: a preallocated inflow particle before its birth frame; P2G and G2P skip it (it has no mass
+           and does not move) until the solver gives it its material (mpm.MpmRunner.emit).
+
+The grid: nodes at i * dx from the origin, dx = 1 / inv_dx, as many per dimension as the grid arrays hold
+(the solver sizes them to cover [0, ceil(upper bound)] of each dimension).
 
 Determinism: P2G scatters with atomic adds. Floating-point adds do not commute, so their result would
 depend on thread scheduling; instead each contribution is rounded to a 2^-32 fixed-point integer (mass in
@@ -24,6 +29,7 @@ import functools
 import taichi as ti
 
 WATER, SAND, GOOP = 0, 1, 2
+INACTIVE = -1
 FIXED_POINT_SCALE = float(2**32)
 
 
@@ -37,11 +43,11 @@ def build_kernels(dim: int):
 
     @ti.func
     def stencil_base(xp, inv_dx, top):
-        """Lower corner of the 3^d quadratic B-spline stencil, clamped so that a runaway particle (caught
-        by the solver's per-frame bounds check) can never index outside the grid arrays."""
+        """Lower corner of the 3^d quadratic B-spline stencil, clamped (to `top`, per dimension) so that a
+        runaway particle (caught by the solver's per-frame bounds check) can never index outside the grid."""
         base = ti.cast(xp * inv_dx - 0.5, ti.i32)
         for d in ti.static(range(dim)):
-            base[d] = ti.min(ti.max(base[d], 0), top)
+            base[d] = ti.min(ti.max(base[d], 0), top[d])
         return base
 
     @ti.func
@@ -105,13 +111,15 @@ def build_kernels(dim: int):
                 bulk: ti.f32, mu: ti.f32, lam: ti.f32, alpha: ti.f32, yield_strain: ti.f32, relax: ti.f32,
                 wall_friction: ti.f32):
         dx = 1.0 / inv_dx
-        top = grid_m.shape[0] - 3
+        top = ti.Vector([grid_m.shape[d] - 3 for d in ti.static(range(dim))], ti.i32)
         for g in ti.grouped(grid_m):
             grid_m[g] = 0
             grid_p[g] = ti.Vector.zero(ti.i64, dim)
 
         # P2G (MLS-MPM eq. 29 of Hu et al. 2018): momentum plus the stress force folded into the affine term
         for p in range(x.shape[0]):
+            if material[p] == INACTIVE:
+                continue
             base = stencil_base(x[p], inv_dx, top)
             fx = x[p] * inv_dx - ti.cast(base, ti.f32)
             w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
@@ -169,6 +177,8 @@ def build_kernels(dim: int):
 
         # G2P: velocity and APIC affine matrix, then F update, plasticity and the next stress
         for p in range(x.shape[0]):
+            if material[p] == INACTIVE:
+                continue
             base = stencil_base(x[p], inv_dx, top)
             fx = x[p] * inv_dx - ti.cast(base, ti.f32)
             w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]

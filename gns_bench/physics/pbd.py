@@ -21,6 +21,13 @@ Position-based fluids (Macklin & Mueller 2013, their Alg. 1), per sub-step:
 Kernels: poly6 for densities and spiky for gradients (Mueller et al. 2003), support h = 2 dx; rho_0 is
 the density of a perfect lattice of spacing dx, so the initial water block starts at rest density.
 
+Shaking (the paper's FLUIDSHAKE-BOX, Knowl 10): with scene keys `shake_amplitude` [min, max] (metres)
+and `shake_frequency` [min, max] (Hz) the water and the cube sit in a container `container_width` (a
+fraction of the bounds' x span) wide, centred, which moves as x_c(t) = A sin(w t) along x; A is clipped
+so that it stays inside the bounds. Its walls, floor and lid (the static particles behind each face)
+move with it and the box projection follows it, so the moving walls push the water. Its two side walls
+are stored as kinematic particles (type 3), one layer on each face, on the fluid lattice.
+
 Determinism: as in `sph.py` (fixed neighbour order, serial sums, no float atomics).
 """
 
@@ -43,11 +50,12 @@ from gns_bench.physics.sph_grid import (
     to_vec3_ndarray,
     vec3,
 )
-from gns_bench.physics.sph_scene import box_boundary_particles
+from gns_bench.physics.sph_scene import box_boundary_particles, fluid_lattice
 from gns_bench.physics.taichi_runtime import ensure_taichi
 
 WATER_TYPE = 5
 RIGID_TYPE = 0
+KINEMATIC_TYPE = 3
 nd_vec3 = ti.types.ndarray(dtype=vec3, ndim=1)
 nd_f32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 nd_i32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -258,14 +266,52 @@ def sample_boxbath_scene(rng: np.random.Generator, scene: dict[str, Any], tier_p
     return np.concatenate([water, cube]).astype(np.float32), len(water), rest.astype(np.float32)
 
 
+@dataclass(frozen=True)
+class Shake:
+    """A container narrower than the bounds, moving as x_c(t) = amplitude sin(omega t) along x."""
+
+    container: np.ndarray  # [3, 2] the container at rest
+    amplitude: float  # metres
+    omega: float  # radians per second
+
+    def offset(self, t: float) -> float:
+        return self.amplitude * math.sin(self.omega * t)
+
+    def side_walls(self, dx: float) -> np.ndarray:
+        """[K, 3] one layer of particles on each side face (x = lo, x = hi) of the container at rest."""
+        _, ys, zs = fluid_lattice(self.container, dx)
+        yz = np.stack(np.meshgrid(ys, zs, indexing="ij"), -1).reshape(-1, 2)
+        faces = [np.column_stack([np.full(len(yz), x), yz]) for x in self.container[0]]
+        return np.concatenate(faces).astype(np.float32)
+
+
+def sample_shake(rng: np.random.Generator, scene: dict[str, Any], bounds: np.ndarray) -> Shake | None:
+    """The shaking of one trajectory from the scene keys (None without `shake_amplitude`)."""
+    if "shake_amplitude" not in scene:
+        return None
+    if "shake_frequency" not in scene:
+        raise ValueError("pbd scene: shaking needs both shake_amplitude and shake_frequency")
+    bounds = np.asarray(bounds, dtype=np.float64)
+    amplitude = float(rng.uniform(*scene["shake_amplitude"]))
+    omega = 2 * math.pi * float(rng.uniform(*scene["shake_frequency"]))
+    span = bounds[0, 1] - bounds[0, 0]
+    width = float(scene.get("container_width", 0.7)) * span
+    container = bounds.copy()
+    container[0] = [bounds[0, 0] + (span - width) / 2, bounds[0, 1] - (span - width) / 2]
+    return Shake(container, min(amplitude, (span - width) / 2), omega)
+
+
 def run_pbd(params: PBDParams, position: np.ndarray, num_water: int, rest: np.ndarray, num_frames: int,
-            frame_dt: float, domain: str = "pbd") -> np.ndarray:
-    """Simulate from rest; the particles after `num_water` are the cube. Returns positions [T, N, 3]."""
+            frame_dt: float, domain: str = "pbd", shake: Shake | None = None) -> np.ndarray:
+    """Simulate from rest; the particles after `num_water` are the cube. Returns positions [T, N, 3].
+
+    With `shake` the container (walls, floor, lid) moves along x; otherwise it is the bounds, at rest."""
     ensure_taichi()
     bounds = np.asarray(params.bounds, dtype=np.float64)
+    container = bounds if shake is None else shake.container
     dx, h, n = params.particle_spacing, params.support, position.shape[0]
     volume, grad_scale = _lattice_sums(dx, h)
-    walls = box_boundary_particles(bounds, dx)  # static particles continuing the lattice behind the walls
+    walls = box_boundary_particles(container, dx)  # static particles continuing the lattice behind the walls
     inv_mass = np.ones(n, dtype=np.float32)
     inv_mass[num_water:] = 1.0 / params.cube_relative_density
     x, v, xp, dxp, v_new = (to_vec3_ndarray(a) for a in (position, np.zeros_like(position), position,
@@ -280,8 +326,9 @@ def run_pbd(params: PBDParams, position: np.ndarray, num_water: int, rest: np.nd
     wall_cells.build(xb)
     wall_args = (xb, wall_cells.cell_start, wall_cells.order)
     # Particles are points kept half a spacing from the walls, like the water's initial lattice.
-    lo, hi = vec3(*(bounds[:, 0] + dx / 2)), vec3(*(bounds[:, 1] - dx / 2))
+    lo, hi = vec3(*(container[:, 0] + dx / 2)), vec3(*(container[:, 1] - dx / 2))
     dt = frame_dt / params.substeps
+    step = 0
     eps = params.relaxation * grad_scale
     s_corr = params.artificial_pressure / grad_scale  # k as a density violation, turned into a lambda
     tolerance = 0.02 * float(np.max(bounds[:, 1] - bounds[:, 0]))
@@ -289,6 +336,12 @@ def run_pbd(params: PBDParams, position: np.ndarray, num_water: int, rest: np.nd
     frames[0] = position
     for frame in range(1, num_frames + 1):
         for _ in range(params.substeps):
+            step += 1
+            if shake is not None:  # the container where it is at the end of this sub-step
+                off = np.array([shake.offset(step * dt), 0.0, 0.0])
+                xb.from_numpy((walls + off).astype(np.float32))
+                wall_cells.build(xb)
+                lo, hi = vec3(*(container[:, 0] + off + dx / 2)), vec3(*(container[:, 1] + off - dx / 2))
             _predict(x, v, xp, vec3(*params.gravity), dt)
             cells.build(xp)
             for _ in range(params.iterations):
@@ -321,9 +374,18 @@ def simulate(spec: Any, tier_name: str, rng: np.random.Generator) -> Trajectory:
     params = params_from_spec(spec)
     tier = spec.tier(tier_name)
     scene = {**spec.scene, **tier.params.get("scene", {})}
+    shake = sample_shake(rng, scene, params.bounds)
     position, num_water, rest = sample_boxbath_scene(rng, scene, tier.params, params.particle_spacing,
-                                                     params.bounds)
-    frames = run_pbd(params, position, num_water, rest, tier.sequence_length, spec.dt, domain=spec.id)
+                                                     params.bounds if shake is None else shake.container)
+    frames = run_pbd(params, position, num_water, rest, tier.sequence_length, spec.dt, domain=spec.id,
+                     shake=shake)
     types = np.full(frames.shape[1], WATER_TYPE, dtype=np.int64)
     types[num_water:] = RIGID_TYPE
+    if shake is not None:  # the side walls, as kinematic particles at the container's offset of each frame
+        walls = shake.side_walls(params.particle_spacing)
+        offsets = np.array([shake.offset(t * spec.dt) for t in range(frames.shape[0])])
+        moving = np.repeat(walls[None].astype(np.float64), frames.shape[0], axis=0)
+        moving[:, :, 0] += offsets[:, None]
+        frames = np.concatenate([frames, moving.astype(np.float32)], axis=1)
+        types = np.concatenate([types, np.full(len(walls), KINEMATIC_TYPE, dtype=np.int64)])
     return Trajectory(frames, types)

@@ -22,7 +22,8 @@ from gns_bench.evaluate.plots import type_colour, type_colours  # noqa: E402
 GIF_FRAMES = 40
 
 
-def _read_trajectory(dataset_dir: Path, split: str, traj: int) -> tuple[np.ndarray, np.ndarray]:
+def _read_trajectory(dataset_dir: Path, split: str, traj: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions [T, N, D], particle types [N] and birth frames [N] (zeros unless the data has inflow)."""
     path = dataset_dir / f"{split}.h5"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such split file")
@@ -31,7 +32,10 @@ def _read_trajectory(dataset_dir: Path, split: str, traj: int) -> tuple[np.ndarr
         key = f"{traj:05d}"
         if key not in f:
             raise IndexError(f"{path}: no trajectory {traj} (the split holds {len(keys)})")
-        return f[key]["position"][()].astype(np.float32), f[key]["particle_type"][()]
+        group = f[key]
+        types = group["particle_type"][()]
+        birth = group["birth_step"][()] if "birth_step" in group else np.zeros(len(types), np.int64)
+        return group["position"][()].astype(np.float32), types, birth
 
 
 def _vertical_axis(gravity: list[float] | None, dim: int) -> int:
@@ -71,7 +75,7 @@ def render_dataset(dataset_dir: str | Path, split: str = "test", traj: int = 0, 
     """
     dataset_dir = Path(dataset_dir)
     meta = read_metadata(dataset_dir)
-    position, types = _read_trajectory(dataset_dir, split, traj)
+    position, types, birth = _read_trajectory(dataset_dir, split, traj)
     stem = Path(out) if out is not None else dataset_dir / "render" / f"{split}_{traj:05d}"
     stem.parent.mkdir(parents=True, exist_ok=True)
     png, gif = stem.with_suffix(".png"), stem.with_suffix(".gif")
@@ -83,7 +87,7 @@ def render_dataset(dataset_dir: str | Path, split: str = "test", traj: int = 0, 
     fig = plt.figure(figsize=(2.2 * frames, 2.4), dpi=80)
     for k, t in enumerate(np.linspace(0, steps - 1, frames).round().astype(int)):
         ax = _axes(fig, meta.dim, 1, frames, k + 1)
-        _draw(ax, position[t], types, bounds, up, size)
+        _draw(ax, position[t, birth <= t], types[birth <= t], bounds, up, size)  # inflow: born ones only
         ax.set_title(f"t={t}", fontsize=8)
     present = sorted(set(types.tolist()))
     handles = [plt.Line2D([], [], marker="o", ls="", color=type_colour(t),
@@ -100,7 +104,7 @@ def render_dataset(dataset_dir: str | Path, split: str = "test", traj: int = 0, 
 
     def update(t: int) -> None:
         ax.clear()
-        _draw(ax, position[t], types, bounds, up, size)
+        _draw(ax, position[t, birth <= t], types[birth <= t], bounds, up, size)
         ax.set_title(f"{meta.name} t={t}", fontsize=8)
 
     FuncAnimation(fig, update, frames=indices).save(gif, writer=PillowWriter(fps=12))

@@ -13,6 +13,25 @@ Keys of `[scene]` (a tier may override any of them in `[tiers.<name>.scene]`):
   shake_amplitude   [min, max]   horizontal shaking of the container (fraction of the bounds)
   shake_frequency   [min, max]   in Hz
   container_width   fraction of the bounds' width taken by the shaken container
+  fill_height       length       blocks and ramps are placed below this height above the container's
+                                 bottom (default: the whole container): a large arena keeps the drop
+                                 heights, hence the speeds, of the unit-square domains
+  shape             "block" | "blob"   what a block is: a rectangle (default), or a non-convex blob, the
+                                 union of `blob_discs` overlapping discs stretched to the block's size,
+                                 split by a random line through its centroid between the two
+                                 `blob_materials` (the paper's unseen shapes, Knowl 7); a blob's solidity
+                                 (area / convex hull area) is at most BLOB_MAX_SOLIDITY
+  blob_discs        [min, max]   discs per blob (default [3, 5])
+  blob_materials    [a, b]       materials of the blob's two sides (one name: the whole blob)
+  initial_jitter    length       std of Gaussian noise added to the initial positions of the material
+                                 present at frame 0, drawn from a stream of its own (rng.spawn): the scene
+                                 is otherwise the one drawn without it (the solver's own sensitivity)
+  inflow            [{ position = [x, y], velocity = [vx, vy], width = w, start = f0, stop = f1,
+                       material = "water" }, ...]
+                                 nozzles emitting streams (2D; gns_bench/physics/inflow.py): a row of
+                                 particles across `width` every spacing / |velocity| seconds from stored
+                                 frame `start` until frame `stop`. `blocks` may then be [0, 0]. Emitted
+                                 particles count towards the tier's max_particles.
 Obstacles become static grid boundaries in the solver and kinematic particles (type 3) in the data.
 """
 
@@ -24,9 +43,19 @@ from typing import Any
 
 import numpy as np
 
+from gns_bench.physics.geometry import (
+    blob_points,
+    lattice_block,
+    rectangle,
+    sample_boundary,
+    solidity,
+    union_sdf,
+)
+from gns_bench.physics.inflow import Emitter, parse_emitters
 from gns_bench.physics.spec import DomainSpec, Tier
 
 MAX_PLACEMENT_TRIES = 200
+BLOB_MAX_SOLIDITY = 0.85  # a blob covers at most this fraction of its convex hull: clearly non-convex
 
 
 @dataclass
@@ -42,6 +71,13 @@ class MpmScene:
     polygons: list[np.ndarray] = field(default_factory=list)  # static convex obstacles (2D), [V, 2] each
     kinematic: np.ndarray | None = None  # [K, D] boundary particles at rest
     shake: tuple[float, float] | None = None  # (amplitude, angular frequency) of horizontal shaking
+    # [N] stored frame at which each particle is emitted (0: present from the start). An inflow particle's
+    # `position` and `velocity` are its birth position and the stream's velocity (see `inflow_particles`).
+    birth_step: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.birth_step is None:
+            self.birth_step = np.zeros(len(self.position), np.int64)
 
     def offset(self, t: float) -> tuple[float, float]:
         """Horizontal container displacement and velocity at time t (zero unless shaken)."""
@@ -58,13 +94,14 @@ class MpmScene:
         velocity[0] = vel
         return (self.container_lo + shift).tolist(), (self.container_hi + shift).tolist(), velocity
 
-    def obstacle_sdf(self, grid: int) -> tuple[np.ndarray, np.ndarray]:
-        """Signed distance to the obstacles on the grid nodes (negative inside) and its unit gradient."""
+    def obstacle_sdf(self, grid: int, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distance to the obstacles on the grid nodes (negative inside) and its unit gradient.
+
+        `shape`: nodes per dimension, node i at i / grid (mpm.grid_nodes)."""
         dim = self.position.shape[1]
-        shape = (grid + 1,) * dim
         if not self.polygons:
             return np.full(shape, 1e3, np.float32), np.zeros((*shape, dim), np.float32)
-        axes = np.meshgrid(*[np.arange(grid + 1) / grid] * dim, indexing="ij")
+        axes = np.meshgrid(*[np.arange(n) / grid for n in shape], indexing="ij")
         points = np.stack(axes, axis=-1).reshape(-1, dim)
         sdf = union_sdf(points, self.polygons).reshape(shape)
         grad = np.stack(np.gradient(sdf, 1.0 / grid), axis=-1)
@@ -83,15 +120,8 @@ class MpmScene:
 
 
 # ----------------------------------------------------------------------------------------------
-# Geometry
+# Scene building
 # ----------------------------------------------------------------------------------------------
-
-def lattice_block(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
-    """Particles on a regular lattice filling the box [lo, hi], cell-centred (2 per grid cell per dim)."""
-    axes = [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi, strict=True)]
-    grids = np.meshgrid(*axes, indexing="ij")
-    return np.stack(grids, axis=-1).reshape(-1, len(lo))
-
 
 def block_scene(material: int, particle_type: int, block_lo: list[float], block_hi: list[float],
                 bounds: list[list[float]], grid: int) -> MpmScene:
@@ -103,57 +133,11 @@ def block_scene(material: int, particle_type: int, block_lo: list[float], block_
                     b[:, 0].copy(), b[:, 1].copy())
 
 
-def polygon_sdf(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Signed distance from 2D points to a convex polygon given counter-clockwise."""
-    dist = np.full(len(points), np.inf)
-    inside = np.ones(len(points), bool)
-    for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-        ab = b - a
-        t = np.clip(((points - a) @ ab) / (ab @ ab), 0.0, 1.0)
-        dist = np.minimum(dist, np.linalg.norm(points - (a + t[:, None] * ab), axis=1))
-        cross = ab[0] * (points[:, 1] - a[1]) - ab[1] * (points[:, 0] - a[0])
-        inside &= cross >= 0
-    return np.where(inside, -dist, dist)
-
-
-def union_sdf(points: np.ndarray, polygons: list[np.ndarray]) -> np.ndarray:
-    return np.min([polygon_sdf(points, p) for p in polygons], axis=0)
-
-
-def rectangle(center: np.ndarray, length: float, thickness: float, angle: float) -> np.ndarray:
-    """A rotated rectangle as a counter-clockwise convex polygon."""
-    c, s = math.cos(angle), math.sin(angle)
-    u, n = np.array([c, s]) * length / 2, np.array([-s, c]) * thickness / 2
-    return np.array([center - u - n, center + u - n, center + u + n, center - u + n])
-
-
-def sample_boundary(polygons: list[np.ndarray], spacing: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Kinematic particles along the outline of the obstacles' union, inside the bounds.
-
-    An edge point is kept only if just outside its edge (along the outward normal) is outside every
-    obstacle: edges shared by touching obstacles (the joints of a random floor) are interior, not outline.
-    """
-    points, outward = [], []
-    for poly in polygons:
-        for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
-            n = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing)))
-            points.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
-            edge = (b - a) / np.linalg.norm(b - a)
-            outward.append(np.broadcast_to([edge[1], -edge[0]], (n, 2)))  # right normal of a CCW edge
-    pts, normals = np.concatenate(points), np.concatenate(outward)
-    exposed = union_sdf(pts + 0.25 * spacing * normals, polygons) > 0.0
-    keep = exposed & np.all((pts >= lo) & (pts <= hi), axis=1)
-    return pts[keep]
-
-
-# ----------------------------------------------------------------------------------------------
-# Scene building
-# ----------------------------------------------------------------------------------------------
-
 SCENE_KEYS = frozenset({
     "blocks", "block_size", "block_materials", "initial_speed", "on_floor", "ramps", "ramp_length",
     "ramp_angle_deg", "ramp_thickness", "random_floor", "floor_height", "shake_amplitude", "shake_frequency",
-    "container_width"})
+    "container_width", "fill_height", "shape", "blob_discs", "blob_materials", "initial_jitter", "inflow"})
+SHAPES = ("block", "blob")
 
 
 def scene_params(spec: DomainSpec, tier: Tier) -> dict[str, Any]:
@@ -164,10 +148,43 @@ def scene_params(spec: DomainSpec, tier: Tier) -> dict[str, Any]:
             raise ValueError(f"{spec.path}: key '{where}.{unknown[0]}': unknown scene key; expected some of "
                              f"{sorted(SCENE_KEYS)}")
     s = {**spec.scene, **tier.params.get("scene", {})}
+
+    def where(key: str) -> str:
+        table = f"tiers.{tier.name}.scene" if key in tier.params.get("scene", {}) else "scene"
+        return f"{spec.path}: key '{table}.{key}'"
+
     if ("shake_amplitude" in s) != ("shake_frequency" in s):
-        raise ValueError(f"{spec.path}: key 'scene.shake_frequency': shaking needs both shake_amplitude and "
-                         "shake_frequency")
+        raise ValueError(f"{where('shake_frequency')}: shaking needs both shake_amplitude and shake_frequency")
+    for key in ("fill_height", "initial_jitter"):
+        value = s.get(key, 1.0)
+        if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
+            raise ValueError(f"{where(key)}: expected a length >= 0, got {value!r}")
+    if s.get("shape", "block") not in SHAPES:
+        raise ValueError(f"{where('shape')}: expected one of {SHAPES}, got {s['shape']!r}")
+    if s.get("shape") == "blob":
+        names = s.get("blob_materials")
+        if spec.dim != 2 or not (isinstance(names, list) and 1 <= len(names) <= 2
+                                 and all(n in spec.materials for n in names)):
+            raise ValueError(f"{where('blob_materials')}: blobs (2D only) need blob_materials, one or two of "
+                             f"the spec's materials {sorted(spec.materials)}, got {names!r}")
+        discs = s.get("blob_discs", [3, 5])
+        if not (isinstance(discs, list) and len(discs) == 2 and all(isinstance(n, int) for n in discs)
+                and 1 <= discs[0] <= discs[1]):
+            raise ValueError(f"{where('blob_discs')}: expected [min, max] disc counts, 1 <= min <= max, "
+                             f"got {discs!r}")
     return s
+
+
+def inflow_emitters(spec: DomainSpec, tier: Tier, s: dict[str, Any], lo: np.ndarray, hi: np.ndarray,
+                    spacing: float) -> list[Emitter]:
+    """The scene's `inflow` nozzles, validated and inside the container (errors name the file and key)."""
+    if "inflow" not in s:
+        return []
+    key = f"tiers.{tier.name}.scene.inflow" if "inflow" in tier.params.get("scene", {}) else "scene.inflow"
+    emitters = parse_emitters(s["inflow"], str(spec.path), key, spec.materials, spec.dim)
+    for i, e in enumerate(emitters):
+        e.check_inside(lo, hi, 2 * spacing, spacing, spec.dt, f"{spec.path}: key '{key}[{i}].position'")
+    return emitters
 
 
 def _uniform(rng: np.random.Generator, pair: Any) -> float:
@@ -176,6 +193,7 @@ def _uniform(rng: np.random.Generator, pair: Any) -> float:
 
 
 def _ramps(s: dict[str, Any], lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+    """Static ramps with centres between 15% and 60% of the height [lo, hi] (the fill region)."""
     count = int(rng.integers(s["ramps"][0], s["ramps"][1] + 1))
     polys = []
     for _ in range(count):
@@ -215,18 +233,34 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
         mid = 0.5 * (lo[0] + hi[0])
         lo[0], hi[0] = mid - width / 2, mid + width / 2
         shake = (amp, omega)
+    fill_hi = hi.copy()  # blocks and ramps go below fill_height
+    if "fill_height" in s:
+        fill_hi[1] = min(hi[1], lo[1] + float(s["fill_height"]))
 
-    polygons: list[np.ndarray] = []
-    if dim == 2 and s.get("ramps"):
-        polygons += _ramps(s, lo, hi, rng)
-    if dim == 2 and s.get("random_floor"):
-        polygons += _floor(s, lo, hi, rng)
+    emitters = inflow_emitters(spec, tier, s, lo, hi, spacing)
+    inflow = [e.particles(spacing, spec.dt, tier.sequence_length) for e in emitters]
 
-    names = list(s.get("block_materials", list(models)))
-    max_particles = int(tier.params.get("max_particles", 10**9))
     for _ in range(MAX_PLACEMENT_TRIES):
-        blocks = _place_blocks(s, dim, lo, hi, spacing, polygons, rng)
-        if blocks is not None and 0 < sum(len(b) for b in blocks) <= max_particles:
+        polygons: list[np.ndarray] = []
+        if dim == 2 and s.get("ramps"):
+            polygons += _ramps(s, lo, fill_hi, rng)
+        if dim == 2 and s.get("random_floor"):
+            polygons += _floor(s, lo, hi, rng)
+        if not emitters or not polygons or _clear_of(polygons, emitters, spacing, spec.dt):
+            break
+    else:
+        raise RuntimeError(f"{spec.path}: could not place the ramps clear of the inflow nozzles in "
+                           f"{MAX_PLACEMENT_TRIES} tries; check [scene] ramps and inflow")
+
+    max_particles = int(tier.params.get("max_particles", 10**9))
+    emitted = sum(len(pos) for pos, _ in inflow)
+    if emitted > max_particles:
+        raise ValueError(f"{spec.path}: key 'tiers.{tier.name}.max_particles': the inflow emits {emitted} "
+                         f"particles in {tier.sequence_length} frames, more than max_particles = {max_particles}")
+    keep_out = [(r.min(axis=0), r.max(axis=0)) for r in (e.reach(spacing, spec.dt) for e in emitters)]
+    for _ in range(MAX_PLACEMENT_TRIES):
+        blocks = _place_blocks(s, dim, lo, fill_hi, spacing, polygons, rng, keep_out)
+        if blocks is not None and 0 < sum(len(b) for b in blocks) + emitted <= max_particles:
             break
     else:
         raise RuntimeError(f"{spec.path}: could not place blocks with at most {max_particles} particles "
@@ -234,20 +268,51 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
                            "max_particles")
     position, velocity, material, ptype = [], [], [], []
     vmax = float(s.get("initial_speed", 0.0))
+
+    def add(points: np.ndarray, vel: np.ndarray, name: str) -> None:
+        position.append(points)
+        velocity.append(np.broadcast_to(vel, points.shape))
+        material.append(np.full(len(points), models[name]))
+        ptype.append(np.full(len(points), spec.particle_types[name]))
+
     for block in blocks:
-        name = names[int(rng.integers(len(names)))]
-        position.append(block)
-        velocity.append(np.broadcast_to(rng.uniform(-vmax, vmax, size=dim), block.shape))
-        material.append(np.full(len(block), models[name]))
-        ptype.append(np.full(len(block), spec.particle_types[name]))
+        if s.get("shape", "block") == "blob":
+            vel = rng.uniform(-vmax, vmax, size=dim)
+            names = s["blob_materials"]
+            angle = rng.uniform(0.0, 2 * math.pi)  # the dividing line, through the blob's centroid
+            side = (block - block.mean(axis=0)) @ np.array([math.cos(angle), math.sin(angle)]) >= 0.0
+            add(block[side], vel, names[0])
+            add(block[~side], vel, names[-1])
+        else:
+            names = list(s.get("block_materials", list(models)))
+            name = names[int(rng.integers(len(names)))]
+            add(block, rng.uniform(-vmax, vmax, size=dim), name)
+    birth = [np.zeros(sum(len(p) for p in position), np.int64)]
+    for e, (pos, born) in zip(emitters, inflow, strict=True):
+        add(pos, e.velocity, e.material)
+        birth.append(born)
 
     kinematic = None
     if polygons:
         kinematic = sample_boundary(polygons, spacing, bounds[:, 0], bounds[:, 1])
     if shake is not None:
         kinematic = _container_walls(lo, hi, spacing)
-    return MpmScene(np.concatenate(position), np.concatenate(velocity), np.concatenate(material),
-                    np.concatenate(ptype), lo, hi, polygons, kinematic, shake)
+    scene = MpmScene(np.concatenate(position), np.concatenate(velocity), np.concatenate(material),
+                     np.concatenate(ptype), lo, hi, polygons, kinematic, shake, np.concatenate(birth))
+    jitter = float(s.get("initial_jitter", 0.0))
+    if jitter > 0.0:
+        # a stream of its own (a child of the trajectory's seed), so the scene above is drawn as without it
+        noise = rng.spawn(1)[0]
+        present = scene.birth_step == 0
+        scene.position[present] += noise.normal(0.0, jitter, size=(int(present.sum()), dim))
+    return scene
+
+
+def _clear_of(polygons: list[np.ndarray], emitters: list[Emitter], spacing: float, dt: float) -> bool:
+    """Whether the obstacles keep 4 spacings from every nozzle's reach (its row and pre-birth path)."""
+    points = np.concatenate([e.reach(spacing, dt) for e in emitters]
+                            + [e.position + e.row_offsets(spacing) for e in emitters])
+    return bool(np.min(union_sdf(points, polygons)) >= 4 * spacing)
 
 
 def _container_walls(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
@@ -260,12 +325,14 @@ def _container_walls(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarr
 
 
 def _place_blocks(s: dict[str, Any], dim: int, lo: np.ndarray, hi: np.ndarray, spacing: float,
-                  polygons: list[np.ndarray], rng: np.random.Generator) -> list[np.ndarray] | None:
-    """Non-overlapping random boxes of particles, clear of the obstacles, or None if they do not fit."""
+                  polygons: list[np.ndarray], rng: np.random.Generator,
+                  keep_out: list[tuple[np.ndarray, np.ndarray]] = ()) -> list[np.ndarray] | None:
+    """Non-overlapping random boxes (or blobs) of particles, clear of the obstacles and the `keep_out` boxes
+    (the inflow nozzles), or None if they do not fit."""
     count = int(rng.integers(s.get("blocks", [1, 1])[0], s.get("blocks", [1, 1])[1] + 1))
     margin = 2 * spacing
     floor_y = lo[1]
-    placed: list[tuple[np.ndarray, np.ndarray]] = []
+    placed: list[tuple[np.ndarray, np.ndarray]] = list(keep_out)
     blocks = []
     for _ in range(count):
         for _ in range(50):
@@ -277,8 +344,15 @@ def _place_blocks(s: dict[str, Any], dim: int, lo: np.ndarray, hi: np.ndarray, s
             b_hi = b_lo + size
             if any(np.all(b_lo < p_hi + margin) and np.all(p_lo < b_hi + margin) for p_lo, p_hi in placed):
                 continue
-            pts = lattice_block(b_lo, b_hi, spacing)
-            if polygons and np.min(union_sdf(pts, polygons)) < 2 * margin:
+            if s.get("shape", "block") == "blob":
+                pts = blob_points(b_lo, b_hi, spacing, s.get("blob_discs", [3, 5]), rng)
+                if len(pts) < 3 or solidity(pts, spacing) > BLOB_MAX_SOLIDITY:
+                    continue
+            else:
+                pts = lattice_block(b_lo, b_hi, spacing)
+            near = [p for p in polygons  # only obstacles within reach can be closer than 2 margins
+                    if np.all(p.min(axis=0) < b_hi + 2 * margin) and np.all(b_lo - 2 * margin < p.max(axis=0))]
+            if near and np.min(union_sdf(pts, near)) < 2 * margin:
                 continue
             placed.append((b_lo, b_hi))
             blocks.append(pts)

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from gns_bench.physics.geometry import lattice_block
 from gns_bench.physics.mpm import MaterialParams, MpmSettings, SimulationError, material_params, run_scene
 from gns_bench.physics.mpm_kernels import GOOP, SAND, WATER
-from gns_bench.physics.scenes import MpmScene, block_scene, lattice_block
+from gns_bench.physics.scenes import MpmScene, block_scene
 from gns_bench.physics.spec import load_domain_spec
 
 BOUNDS = [[0.1, 0.9], [0.1, 0.9]]
