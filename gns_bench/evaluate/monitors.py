@@ -107,6 +107,11 @@ class DensityMonitor:
         if not np.all(np.isfinite(p)):
             return  # FiniteMonitor's business
         moving = self.moving.cpu().numpy()
+        if state.present is not None:  # inflow: particles waiting to enter are not in the scene yet
+            present = state.present.cpu().numpy()
+            p, moving = p[present], moving[present]
+        if not moving.any():
+            return
         distance, _ = cKDTree(p).query(p[moving], k=2)
         share = float(np.mean(distance[:, 1] < self.fraction * self.radius))
         if share > self.max_share:

@@ -25,6 +25,7 @@ class RolloutState:
     frame: int  # index of that frame in the trajectory
     position: torch.Tensor  # [N, D] the new positions
     window: torch.Tensor  # [N, W, D] the window they were predicted from
+    present: torch.Tensor | None = None  # [N] bool, inflow only: the particles in the scene (the others wait)
 
 
 class RolloutStopped(Exception):
@@ -106,6 +107,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
         for step in range(num_steps):
             frame = w + step
             step_context = context[frame - 1: frame] if context is not None else None
+            present = None
             if birth is None:
                 edges = neighbours(window[:, -1]) if neighbours is not None else None
                 with autocast(device, precision):
@@ -127,7 +129,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
                 next_position[index[keep]] = moved[keep]
             try:
                 for hook in hooks:
-                    hook(RolloutState(step, frame, next_position, window))
+                    hook(RolloutState(step, frame, next_position, window, present))
             except RolloutStopped as stop:
                 stopped_at, reason, stopped_by = step, stop.reason, stop
                 break

@@ -115,15 +115,17 @@ def _held_out(domain: str) -> tuple[float, float] | None:
     return context.exclude[0] if context is not None and context.exclude else None
 
 
-def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: str = "##") -> list[str]:
-    """One stress sweep: budget, stability summary, each test's figure and numbers, generalisation frames."""
+def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: str = "##",
+                  statement: bool = False) -> list[str]:
+    """One stress sweep: budget (and, with `statement`, what it means against the paper's), stability
+    summary, each test's figure and numbers, generalisation frames."""
     lines = [f"{level} {sweep.name}: {sweep.description}", "", f"Paper: {sweep.paper_figure or '—'}. Domain "
              f"`{sweep.domain}`; MLflow experiment `{sweep.experiment}`.", ""]
     done = [r for r in rows if r.ok]
     if not done:
         states = ", ".join(sorted({r.status for r in rows})) or "missing"
         return lines + [f"**No finished run at this tier ({states}).** Run `nox -s {sweep.name} -- <tier>`.", ""]
-    lines += [f"Budget: {budget(done)}. {budget_statement(done)}", ""]
+    lines += [f"Training: {budget(done)}." + (f" {budget_statement(done)}" if statement else ""), ""]
     for row in done:
         horizon, scale = stable_cells(row)
         lines += [f"Run `{row.run_id}` ({row.planned.name}): largest stable horizon **{horizon}**; largest stable "
@@ -199,7 +201,7 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
                          f"{budget([row])} | `{row.run_id}` |")
     lines += [""]
     for sweep, rows in collected:
-        lines += sweep_section(sweep, rows, out_dir)
+        lines += sweep_section(sweep, rows, out_dir, statement=True)
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

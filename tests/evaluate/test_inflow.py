@@ -114,3 +114,21 @@ def test_birth_step_round_trips_and_is_validated(tiny_dataset: Path, tmp_path: P
         f["00000"].create_dataset("birth_step", data=bad.birth_step)
     with pytest.raises(DatasetError, match="birth_step"):
         load_split(tmp_path / "bad", "test")
+
+
+def test_waiting_particles_do_not_trip_the_density_monitor(simulator: LearnedSimulator, tiny_dataset: Path) -> None:
+    from gns_bench.evaluate.monitors import DensityMonitor
+
+    traj = load_split(tiny_dataset, "test")[0]
+    waiting = 3 * traj.num_particles  # far more than the monitor's 10 % share, all on one spot until they enter
+    parked = np.broadcast_to(traj.position[0, :1], (traj.num_steps, waiting, 2)).copy()
+    inflow = Trajectory(np.concatenate([traj.position, parked], axis=1),
+                        np.concatenate([traj.particle_type, np.full(waiting, 5)]), traj.step_context,
+                        np.concatenate([np.zeros(traj.num_particles, np.int64),
+                                        np.full(waiting, traj.num_steps - 1, np.int64)]))
+    moving = torch.from_numpy(inflow.particle_type != 3)
+    monitor = DensityMonitor(moving, simulator.radius, every=1)
+    assert rollout(simulator, inflow, 5, hooks=[monitor]).stopped_at is None
+    everyone = Trajectory(inflow.position, inflow.particle_type, inflow.step_context)  # all present from the start
+    stopped = rollout(simulator, everyone, 5, hooks=[monitor])
+    assert stopped.stopped_at == 0 and "density_collapse" in stopped.stop_reason
