@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -95,8 +94,18 @@ def test_evenly_spaced_steps_and_subsampling() -> None:
     assert metrics.subsample_particles(5, 10).tolist() == list(range(5))
 
 
-def test_distributional_metrics_of_a_rollout_are_bounded_in_time() -> None:
-    """1000 steps of 2000 moving particles (WaterDrop scale) evaluated on 10 steps in seconds, not minutes."""
+def test_distributional_metrics_of_a_rollout_are_bounded_in_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """1000 steps of 2000 moving particles (WaterDrop scale): OT and MMD run on the 10 configured steps only
+    (counted, not timed: a timed unit test flakes on a shared machine)."""
+    calls = {"ot": 0, "mmd": 0}
+    for name in calls:
+        original = getattr(metrics, {"ot": "optimal_transport", "mmd": "mmd"}[name])
+
+        def counting(*args, _original=original, _name=name, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(metrics, {"ot": "optimal_transport", "mmd": "mmd"}[name], counting)
     rng = np.random.default_rng(0)
     n, k = 2000, 1000
     start = rng.uniform(0.1, 0.9, (n, 2)).astype(np.float32)
@@ -105,9 +114,8 @@ def test_distributional_metrics_of_a_rollout_are_bounded_in_time() -> None:
     predicted = truth + np.float32(0.01)
     window = start[None] - np.arange(5, -1, -1, dtype=np.float32)[:, None, None] * velocity[None]
     result = RolloutResult(predicted, truth, window, np.full(n, 5))
-    started = time.perf_counter()
     values, method = distributional_metrics(result, EvalConfig(distribution_steps=10), radius=0.015)
-    elapsed = time.perf_counter() - started
+    assert calls == {"ot": 10, "mmd": 10}
     assert method == "emd" and values["ot_exact"] == 1.0
     assert values["ot"] == pytest.approx(2e-4, rel=1e-3)  # a uniform shift of 0.01 in both dims
     # only the first predicted velocity differs (by the 0.01 jump off the initial window), then they agree
@@ -115,4 +123,3 @@ def test_distributional_metrics_of_a_rollout_are_bounded_in_time() -> None:
     first = 0.5 * np.square(velocity.astype(np.float64) + 0.01).sum(1).mean()
     assert values["kinetic_energy_error"] == pytest.approx(abs(first - ke) / (k * ke), rel=1e-3)
     assert values["mmd"] > 0
-    assert elapsed < 60, f"distributional metrics took {elapsed:.1f} s"
