@@ -106,7 +106,7 @@ def horizon(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], tra
         result = _run(simulator, traj, length, device)
         errors.append(per_step_mse(result, length))
         out.trips += _trip(label, i, result)
-        stable.append(result.predicted.shape[0])
+        stable.append(length if result.stopped_at is None else result.stopped_at)
         rigid = traj.particle_type == RIGID_PARTICLE_TYPE
         if rigid.sum() >= 2 and result.predicted.shape[0]:
             drift = np.full(length, np.nan)
@@ -228,7 +228,7 @@ def scale(simulator: LearnedSimulator, scenes: dict[int, tuple[list[Trajectory],
             errors.append(per_step_mse(result, length))
             cv = metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0])
             baseline.append(metrics.rollout_mse(cv, result.ground_truth, result.scored_mask(len(cv))))
-            done.append(result.predicted.shape[0])
+            done.append(length if result.stopped_at is None else result.stopped_at)
             out.trips += _trip(f"x{factor}", i, result)
         particles = float(np.mean([t.num_particles for t in trajectories]))
         out.curves[f"mse_x{factor}"] = _stack(errors)
