@@ -120,7 +120,8 @@ def _thin(result: RolloutResult, max_particles: int = 5000) -> RolloutResult:
     if stride == 1:
         return result
     return RolloutResult(result.predicted[:, ::stride], result.ground_truth[:, ::stride],
-                         result.initial_window[:, ::stride], result.particle_type[::stride])
+                         result.initial_window[:, ::stride], result.particle_type[::stride],
+                         birth_step=None if result.birth_step is None else result.birth_step[::stride])
 
 
 def rollout_png(result: RolloutResult, path: Path, title: str) -> Path:

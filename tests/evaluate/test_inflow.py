@@ -132,3 +132,22 @@ def test_waiting_particles_do_not_trip_the_density_monitor(simulator: LearnedSim
     everyone = Trajectory(inflow.position, inflow.particle_type, inflow.step_context)  # all present from the start
     stopped = rollout(simulator, everyone, 5, hooks=[monitor])
     assert stopped.stopped_at == 0 and "density_collapse" in stopped.stop_reason
+
+
+def test_rollout_pictures_hide_particles_waiting_to_enter(simulator: LearnedSimulator, tiny_dataset: Path,
+                                                          tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.axes
+
+    from gns_bench.evaluate.plots import plot_rollout
+
+    traj = with_inflow(load_split(tiny_dataset, "test")[0], simulator.radius)
+    result = rollout(simulator, traj)
+    drawn: list[int] = []
+    scatter = matplotlib.axes.Axes.scatter
+    monkeypatch.setattr(matplotlib.axes.Axes, "scatter",
+                        lambda self, x, y, *a, **k: (drawn.append(len(x)), scatter(self, x, y, *a, **k))[1])
+    plot_rollout(result, tmp_path / "inflow.png", num_frames=len(result.predicted))
+    n = traj.num_particles - len(BIRTHS)
+    w = simulator.config.input_sequence_length
+    expected = [n + int(np.sum(np.array(BIRTHS) <= w + step)) for step in range(len(result.predicted))]
+    assert drawn == [count for count in expected for _ in range(2)]  # ground truth and GNS, step by step
