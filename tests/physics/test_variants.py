@@ -20,7 +20,8 @@ from gns_bench.physics.scenes import MpmScene, build_scene
 from gns_bench.physics.spec import SpecError, list_domains, list_variants, load_domain_spec
 
 VARIANTS = ["boxbath-long", "boxbath-shake", "continuous-heldout", "multimaterial-blob", "multimaterial-jitter",
-            "waterramps-inflow", "waterramps-jitter", "waterramps-long", "waterramps-x2", "waterramps-x34", "waterramps-x8"]
+            "waterramps-inflow", "waterramps-jitter", "waterramps-long", "waterramps-x2", "waterramps-x34",
+            "waterramps-x8"]
 TRAINABLE = {"boxbath-shake"}  # the others are evaluation-only: test split alone
 G, DT = 9.81, 0.0025
 

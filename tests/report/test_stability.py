@@ -1,5 +1,5 @@
-"""The stability report and `gns-bench stress`, on a stress sweep over the tiny domain (no dataset variants:
-the tests that need one are skipped and the report says so)."""
+"""The stability report and `gns-bench stress`, on a stress sweep over the tiny domain. It has no dataset
+variants: `horizon` falls back to the test split, `scale` is skipped and the report says so."""
 
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ domain = "tiny"
 paper_figure = "Knowl 7"
 
 [config.stress]
-tests = ["precision", "horizon"]
+tests = ["precision", "horizon", "scale"]
+scales = [2]
 
 [tiers.smoke.config.model]
 latent_size = 8
@@ -53,8 +54,9 @@ def test_stress_results_are_logged_with_the_training_run(stressed: dict[str, Pat
     run = mlflow.get_run(stressed["run_id"])
     metrics, tags = run.data.metrics, run.data.tags
     assert metrics["stress/precision/divergence_final_fp32"] < metrics["stress/precision/divergence_final_bf16"]
-    assert "horizon: no dataset variant 'tiny-long'" in tags["stress/skipped"]
-    assert tags["stress/tests"] == "precision"
+    assert "scale x2: no dataset variant 'tiny-x2'" in tags["stress/skipped"]
+    assert tags["stress/tests"] == "precision,horizon"
+    assert metrics["stress/horizon/steps"] == 6 and metrics["stress/horizon/stable_steps"] <= 6
 
 
 def test_stability_report_shows_tests_skips_and_figures(stressed: dict[str, Path], tmp_path: Path) -> None:
@@ -62,13 +64,16 @@ def test_stability_report_shows_tests_skips_and_figures(stressed: dict[str, Path
     missing = load_sweep(SWEEPS_DIR / "stress" / "boxbath.toml")  # never run in this store: shown as missing
     readme = write_stability_report("smoke", tmp_path, [sweep, missing])
     text = readme.read_text()
-    assert f"| {sweep.name} | tiny | not run | not run | 0 |" in text
+    row = next(line for line in text.splitlines() if line.startswith(f"| {sweep.name} | tiny |"))
+    assert re.search(r"\| \d\S*x \(\d+ of 6 steps, [^)]*\) \| not run \|", row), row
     assert f"| {missing.name} | boxbath | **missing** |" in text
-    assert f"`{stressed['run_id']}`" in text and "no dataset variant 'tiny-long'" in text
+    assert f"`{stressed['run_id']}`" in text and "no dataset variant 'tiny-x2'" in text
+    assert "no variant 'tiny-long': rolled out the test split over its own length" in text
     figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
-    assert figures == [f"{sweep.name}_precision.png"]
-    image = matplotlib.image.imread(tmp_path / figures[0])
-    assert min(image.shape[:2]) > 100 and image.std() > 0
+    assert figures == [f"{sweep.name}_precision.png", f"{sweep.name}_horizon.png"]
+    for figure in figures:
+        image = matplotlib.image.imread(tmp_path / figure)
+        assert min(image.shape[:2]) > 100 and image.std() > 0
 
 
 def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
