@@ -65,8 +65,10 @@ def budget(rows: list[RunRow]) -> str:
     hardware = sorted({r.tag("hardware", "?") for r in done})
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier", "?") for r in done})
     horizon = mean_std([r.metric("rollout_steps") for r in done])[0]
-    return (f"{'/'.join(f'{s:,}' for s in steps)} steps, {fmt(wall)} s, {'; '.join(hardware)}, "
-            f"data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
+    models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
+                     for r in done})
+    return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
+            f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
 
 
 def budget_statement(rows: list[RunRow]) -> str:
