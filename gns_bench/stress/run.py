@@ -25,6 +25,7 @@ from gns_bench.data.format import Metadata, Trajectory, load_split, read_metadat
 from gns_bench.data.generate import ensure_dataset
 from gns_bench.evaluate.evaluate import Evaluation, evaluate
 from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.physics.spec import list_variants, load_domain_spec
 from gns_bench.stress import experiments
 from gns_bench.stress.experiments import StressResult
 
@@ -36,17 +37,7 @@ class StressOutcome:
     skipped: list[str] = field(default_factory=list)  # what could not run, and why
 
 
-def _variants() -> set[str]:
-    try:
-        from gns_bench.physics.spec import list_variants
-    except ImportError:  # pragma: no cover - physics without variants
-        return set()
-    return set(list_variants())
-
-
 def _variant_jitter(variant: str) -> float:
-    from gns_bench.physics.spec import load_domain_spec
-
     return float(load_domain_spec(variant).scene.get("initial_jitter", 0.0))
 
 
@@ -60,7 +51,7 @@ def run_stress(simulator: LearnedSimulator, config: Config, dataset_dir: str | P
     domain, seed = generator.get("domain", ""), int(generator.get("seed", 0))
     tier = stress.dataset_tier or generator.get("tier", "smoke")
     data_root = dataset_dir.parent
-    known = _variants()
+    known = set(list_variants())
     outcome = StressOutcome()
     window = config.model.input_sequence_length
 
