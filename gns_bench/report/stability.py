@@ -43,22 +43,18 @@ def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
     return results
 
 
-def _metric(row: RunRow, key: str) -> float:
-    return float(row.record.metrics.get(key, math.nan)) if row.ok else math.nan
-
-
 def stable_cells(row: RunRow) -> tuple[str, str]:
     """'largest stable horizon' and 'largest stable scale' cells of one run."""
-    steps, length = _metric(row, "stress/horizon/stable_steps"), _metric(row, "stress/horizon/training_length")
-    total = _metric(row, "stress/horizon/steps")
+    steps, length = row.metric("stress/horizon/stable_steps"), row.metric("stress/horizon/training_length")
+    total = row.metric("stress/horizon/steps")
     if math.isfinite(steps):
         horizon = f"{steps / length:.2g}x ({steps:.0f} of {total:.0f} steps" + \
                   (", no monitor tripped)" if steps >= total else ", a monitor stopped it)")
     else:
         horizon = "not run"
-    factor = _metric(row, "stress/scale/largest_stable_factor")
+    factor = row.metric("stress/scale/largest_stable_factor")
     if math.isfinite(factor):
-        particles = _metric(row, f"stress/scale/x{factor:g}/particles") if factor else math.nan
+        particles = row.metric(f"stress/scale/x{factor:g}/particles") if factor else math.nan
         scale = f"{factor:g}x ({particles:,.0f} particles)" if factor else "none stable"
     else:
         scale = "not run"
@@ -136,7 +132,7 @@ def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: st
         with tempfile.TemporaryDirectory() as tmp:
             workdir = Path(tmp)
             for result in load_results(row, workdir):
-                training = int(_metric(row, "stress/horizon/training_length")) if result.name == "horizon" else None
+                training = int(row.metric("stress/horizon/training_length")) if result.name == "horizon" else None
                 figure = plot_stress(result, out_dir / f"{sweep.name}_{result.name}.png", training_length=training,
                                      title=f"{sweep.name}: {result.name}")
                 lines += [f"{level}# {result.name}", "", f"![{result.name}]({figure.name})", "",

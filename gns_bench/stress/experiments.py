@@ -101,7 +101,7 @@ def horizon(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], tra
     out = StressResult("horizon")
     w = simulator.config.input_sequence_length
     length = max(t.num_steps - w for t in trajectories) if steps is None else steps
-    errors, drifts, stable = [], [], []
+    errors, drifts, truth_drifts, stable = [], [], [], []
     for i, traj in enumerate(trajectories):
         result = _run(simulator, traj, length, device)
         errors.append(per_step_mse(result, length))
@@ -112,11 +112,13 @@ def horizon(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], tra
             drift = np.full(length, np.nan)
             drift[: result.predicted.shape[0]] = rigidity_drift(result.predicted, rigid)
             drifts.append(drift)
-            truth = rigidity_drift(result.ground_truth[:length], rigid)
-            out.curves.setdefault("rigidity_drift_truth", truth.tolist())
+            truth = np.full(length, np.nan)
+            truth[: min(length, len(result.ground_truth))] = rigidity_drift(result.ground_truth[:length], rigid)
+            truth_drifts.append(truth)
     out.curves["mse"] = _stack(errors)
     if drifts:
         out.curves["rigidity_drift"] = _stack(drifts)
+        out.curves["rigidity_drift_truth"] = _stack(truth_drifts)
         out.metrics["rigidity_drift_final"] = float(np.nanmean([d[np.isfinite(d)][-1] for d in drifts]))
     mse = np.asarray(out.curves["mse"])
     out.metrics.update(
