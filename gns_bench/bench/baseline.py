@@ -30,8 +30,7 @@ class ConcatInteractionNetwork(MessagePassing):
         return self._new_edges
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor, globals_=None,
-                node_graph=None, update_globals: bool = True, in_degree=None):
-        # PyG's own scatter aggregation (in_degree, our segment-sum shortcut, is ignored on purpose)
+                node_graph=None, update_globals: bool = True):
         aggregated = self.propagate(edge_index, x=nodes, edge_attr=edges)
         new_edges, self._new_edges = self._new_edges, None
         return nodes + self.node_mlp(torch.cat([nodes, aggregated], dim=1)), new_edges, globals_

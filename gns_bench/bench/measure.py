@@ -21,6 +21,7 @@ from gns_bench.model import features
 from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.train.loop import adam
 
 
 def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Callable[[], None] | None = None
@@ -171,7 +172,7 @@ def train_step_seconds(simulator: LearnedSimulator, scene: Scene, device: torch.
     types = scene.particle_type.to(device)
     edges = simulator.build_graph(window[:, -1])
     target = torch.zeros(window.shape[0], window.shape[2], device=device)
-    optimiser = torch.optim.Adam(simulator.parameters(), lr=1e-4)
+    optimiser = adam(simulator.parameters(), 1e-4)
     losses = []
 
     def step() -> None:

@@ -10,9 +10,10 @@
 The first layer of phi_e is applied as per-node projections gathered per edge,
 W [e, v_s, v_r] = W_e e + (W_s v)[s] + (W_r v)[r], which is the same function as the concatenated
 form with fewer FLOPs (E >> N); the weights are stored as one Linear so both forms share parameters.
-Sum aggregation: when the edges are sorted by receiver (as `radius_graph` returns them) it is a segment
-sum over contiguous runs, faster than a scatter (measured by `gns-bench bench`); otherwise PyTorch
-Geometric's scatter.
+Sum aggregation is an `index_add` (backward: an `index_select`). On this CPU (idle, 28.6k x 128 rows) a
+segment sum over receiver-sorted edges took 2.7 ms in fp32 and 7.2 ms in bf16 against 0.55 ms, and PyG's
+`scatter` broadcasts its index so that its backward is a `gather` (2.7 ms) rather than an `index_select`
+(0.4 ms); `gns-bench bench` measures the whole step.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int,
     layers: list[nn.Module] = []
     size = in_size
     for _ in range(hidden_layers):
-        layers += [nn.Linear(size, hidden_size), nn.ReLU()]
+        layers += [nn.Linear(size, hidden_size), nn.ReLU(inplace=True)]
         size = hidden_size
     layers.append(nn.Linear(size, out_size))
     if layer_norm:
@@ -36,19 +37,9 @@ def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int,
     return nn.Sequential(*layers)
 
 
-def sorted_in_degree(receivers: torch.Tensor, num_nodes: int) -> torch.Tensor | None:
-    """Edges per receiver when the edges are sorted by receiver (segment sums apply), else None."""
-    if receivers.numel() > 1 and not bool(torch.all(receivers[1:] >= receivers[:-1])):
-        return None
-    return torch.bincount(receivers, minlength=num_nodes)
-
-
-def aggregate(edges: torch.Tensor, receivers: torch.Tensor, num_nodes: int,
-              in_degree: torch.Tensor | None = None) -> torch.Tensor:
-    """Sum of incoming edge latents per node; `in_degree` from `sorted_in_degree` enables segment sums."""
-    if in_degree is not None:
-        return torch.segment_reduce(edges, "sum", lengths=in_degree, axis=0, unsafe=True)
-    return scatter(edges, receivers, dim=0, dim_size=num_nodes, reduce="sum")
+def aggregate(edges: torch.Tensor, receivers: torch.Tensor, num_nodes: int) -> torch.Tensor:
+    """Sum of incoming edge latents per node."""
+    return edges.new_zeros(num_nodes, edges.shape[1]).index_add_(0, receivers, edges)
 
 
 class InteractionNetwork(nn.Module):
@@ -75,22 +66,23 @@ class InteractionNetwork(nn.Module):
         weight = first.weight  # [H, 3L (+L)]: columns for [e, v_sender, v_receiver (, u)]
         hidden = torch.addmm(first.bias, edges, weight[:, :size].T)
         # Per-node projections (N x L x H each, cheap) gathered per edge: contiguous rows for index_select.
-        hidden = hidden + (nodes @ weight[:, size:2 * size].T).index_select(0, edge_index[0])
-        hidden = hidden + (nodes @ weight[:, 2 * size:3 * size].T).index_select(0, edge_index[1])
+        # In-place adds: addmm's backward does not need its output, and no [E, H] buffer is allocated.
+        hidden.add_((nodes @ weight[:, size:2 * size].T).index_select(0, edge_index[0]))
+        hidden.add_((nodes @ weight[:, 2 * size:3 * size].T).index_select(0, edge_index[1]))
         if edge_globals is not None:
-            hidden = hidden + edge_globals @ weight[:, 3 * size:].T
+            hidden.add_(edge_globals @ weight[:, 3 * size:].T)
         return rest(hidden)
 
     def forward(self, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
                 globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None,
-                update_globals: bool = True, in_degree: torch.Tensor | None = None
+                update_globals: bool = True
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         node_globals = edge_globals = None
         if self.global_latent:
             node_globals = globals_.index_select(0, node_graph)
             edge_globals = node_globals.index_select(0, edge_index[1])
         new_edges = edges + self.edge_update(nodes, edges, edge_index, edge_globals)
-        aggregated = aggregate(new_edges, edge_index[1], nodes.shape[0], in_degree)
+        aggregated = aggregate(new_edges, edge_index[1], nodes.shape[0])
         node_inputs = [nodes, aggregated] + ([node_globals] if self.global_latent else [])
         new_nodes = nodes + self.node_mlp(torch.cat(node_inputs, dim=1))
         new_globals = globals_
@@ -155,9 +147,7 @@ class EncodeProcessDecode(nn.Module):
                 globals_ = self.global_encoder(global_features)
             else:
                 globals_ = self.global_constant.expand(num_graphs, -1)
-        in_degree = sorted_in_degree(edge_index[1], nodes.shape[0])
         for step, index in enumerate(self.schedule):
             nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph,
-                                                           update_globals=step < len(self.schedule) - 1,
-                                                           in_degree=in_degree)
+                                                           update_globals=step < len(self.schedule) - 1)
         return self.decoder(nodes)
