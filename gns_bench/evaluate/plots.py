@@ -34,14 +34,12 @@ def plot_rollout(result: RolloutResult, path: str | Path, bounds: list[list[floa
     steps = np.unique(np.linspace(0, k - 1, num_frames).round().astype(int))
     colours = np.array(type_colours(result.particle_type))
     axes_dims = (0, result.predicted.shape[2] - 1)
-    w = result.initial_window.shape[0]
-    present = (np.ones(len(colours), bool) if result.birth_step is None else None)  # inflow: hide waiting ones
     fig, axes = plt.subplots(2, len(steps), figsize=(2.4 * len(steps), 5.0), squeeze=False)
     for column, step in enumerate(steps):
         for row, (label, frames) in enumerate((("ground truth", result.ground_truth),
                                                ("GNS", result.predicted))):
             ax = axes[row, column]
-            shown = present if present is not None else result.birth_step <= w + step
+            shown = result.shown_at(step)  # inflow: particles waiting to enter are hidden
             xy = frames[step][shown][:, axes_dims]
             ax.scatter(xy[:, 0], xy[:, 1], s=2, c=colours[shown], linewidths=0)
             if bounds is not None:

@@ -54,6 +54,13 @@ class RolloutResult:
     def moving_mask(self) -> np.ndarray:
         return ~kinematic_mask(torch.from_numpy(self.particle_type)).numpy()
 
+    def shown_at(self, step: int) -> np.ndarray:
+        """[N] the particles that exist at predicted frame `step` (inflow particles from their birth frame on);
+        pictures draw these."""
+        if self.birth_step is None:
+            return np.ones(len(self.particle_type), bool)
+        return self.birth_step <= self.initial_window.shape[0] + step
+
     def scored_mask(self, num_steps: int | None = None) -> np.ndarray:
         """The particles whose error counts: [N] moving particles, or [K, N] moving particles present at
         each predicted frame when particles enter over time (inflow)."""

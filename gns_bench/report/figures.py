@@ -147,8 +147,9 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
     size = float(np.clip(3000.0 / len(result.particle_type), 1.0, 10.0))  # visible dots for small scenes too
     fig, axes = plt.subplots(1, 2, figsize=(5.0, 2.8))
     scatters = []
-    for ax, label, frames in ((axes[0], "ground truth", result.ground_truth), (axes[1], "GNS", result.predicted)):
-        scatters.append(ax.scatter(frames[0][:, dims[0]], frames[0][:, dims[1]], s=size, c=colours, linewidths=0))
+    for ax, label in ((axes[0], "ground truth"), (axes[1], "GNS")):
+        start = result.ground_truth[0][:, dims]  # placeholders; `draw` sets every frame's points
+        scatters.append(ax.scatter(start[:, 0], start[:, 1], s=size, c=colours, linewidths=0))
         ax.set_xlim(limits[0])
         ax.set_ylim(limits[1])
         ax.set_aspect("equal")
@@ -159,8 +160,11 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
 
     def draw(i: int) -> list:
         step = steps[i]
-        scatters[0].set_offsets(result.ground_truth[step][:, dims])
-        scatters[1].set_offsets(result.predicted[step][:, dims])
+        hidden = ~result.shown_at(step)  # inflow particles waiting to enter: NaN offsets are not drawn
+        for scatter, frames in zip(scatters, (result.ground_truth, result.predicted), strict=True):
+            xy = frames[step][:, dims].astype(float)
+            xy[hidden] = np.nan
+            scatter.set_offsets(xy)
         caption.set_text(f"{title} - step {step + 1}")
         return scatters
 

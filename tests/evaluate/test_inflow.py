@@ -151,3 +151,25 @@ def test_rollout_pictures_hide_particles_waiting_to_enter(simulator: LearnedSimu
     w = simulator.config.input_sequence_length
     expected = [n + int(np.sum(np.array(BIRTHS) <= w + step)) for step in range(len(result.predicted))]
     assert drawn == [count for count in expected for _ in range(2)]  # ground truth and GNS, step by step
+
+
+def test_rollout_animation_hides_particles_waiting_to_enter(simulator: LearnedSimulator, tiny_dataset: Path,
+                                                            tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from matplotlib.collections import PathCollection
+
+    from gns_bench.report.figures import rollout_gif
+
+    traj = with_inflow(load_split(tiny_dataset, "test")[0], simulator.radius)
+    result = rollout(simulator, traj)
+    drawn: list[int] = []
+    set_offsets = PathCollection.set_offsets
+    monkeypatch.setattr(PathCollection, "set_offsets",
+                        lambda self, xy: (drawn.append(int(np.isfinite(np.asarray(xy)).all(axis=1).sum())),
+                                          set_offsets(self, xy))[1])
+    rollout_gif(result, tmp_path / "inflow.gif", "inflow", max_frames=len(result.predicted))
+    n = traj.num_particles - len(BIRTHS)
+    w = simulator.config.input_sequence_length
+    expected = {n + int(np.sum(np.array(BIRTHS) <= w + step)) for step in range(len(result.predicted))}
+    counts = set(drawn[2:])  # the first two are the placeholders the scatters are built with
+    assert counts == expected and len(expected) > 1  # particles appear as they are born, none before
+    assert (tmp_path / "inflow.gif").stat().st_size > 0
