@@ -69,6 +69,9 @@ class TrainConfig:
     device: str = "auto"  # "auto" picks CUDA when present
     num_threads: int | None = None  # torch CPU threads; None keeps torch's default
     precision: Literal["fp32", "bf16"] = "fp32"  # bf16: autocast the network (features and loss stay fp32)
+    # torch.compile the network (dynamic shapes: one compilation serves every graph size, ~1 min at start).
+    # On this CPU it pays in bf16 and costs in fp32; `gns-bench bench` measures both.
+    compile: bool = False
 
     def validate(self) -> None:
         _require(self.steps >= 0, "train.steps", "must be >= 0")

@@ -166,8 +166,12 @@ def verlet_search_seconds(simulator: LearnedSimulator, window: torch.Tensor, ste
 
 
 def train_step_seconds(simulator: LearnedSimulator, scene: Scene, device: torch.device, precision: str = "fp32",
-                       repeats: int = 5) -> tuple[float, float]:
-    """(seconds per forward+backward+Adam step on a fixed graph, the loss of the last step)."""
+                       repeats: int = 5, compile_network: bool = False) -> tuple[float, float]:
+    """(seconds per forward+backward+Adam step on a fixed graph, the loss of the last step).
+    `compile_network`: torch.compile the network as `train.compile` does; the compilation happens in the
+    untimed warm-up steps."""
+    if compile_network:
+        simulator.network.compile(dynamic=True)
     window = scene.window.to(device)
     types = scene.particle_type.to(device)
     edges = simulator.build_graph(window[:, -1])

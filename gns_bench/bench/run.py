@@ -36,6 +36,10 @@ INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 200
                      ("water-3d-s", 3, 5800), ("water-3d", 3, 13000), ("goop-3d", 3, 14000), ("sand-3d", 3, 20000)]
 
 
+OURS = "gns-bench (split first edge layer)"
+BASELINE = "PyG MessagePassing, concatenated inputs"
+
+
 @dataclass
 class BenchSettings:
     device: str = "auto"
@@ -45,18 +49,19 @@ class BenchSettings:
     inference_domains: list[tuple[str, int, int]] = field(default_factory=lambda: list(INFERENCE_DOMAINS))
     repeats: int = 5
     gemm_sizes: tuple[int, ...] = (1024, 2048, 4096)
+    compile: bool = True  # also time the training step under torch.compile (~1 min of compilation each)
 
     @classmethod
     def quick(cls) -> BenchSettings:
         """Seconds, not minutes: for tests and a first look."""
         return cls(train_particles=400, scaling_2d=(500, 1000), scaling_3d=(500,),
-                   inference_domains=[("waterdrop", 2, 1000), ("boxbath", 3, 1000)], repeats=2)
+                   inference_domains=[("waterdrop", 2, 1000), ("boxbath", 3, 1000)], repeats=2, compile=False)
 
     @classmethod
     def tiny(cls) -> BenchSettings:
         """The smallest run that exercises every measurement (tests)."""
         return cls(train_particles=100, scaling_2d=(200,), scaling_3d=(), inference_domains=[("waterdrop", 2, 200)],
-                   repeats=1, gemm_sizes=(256,))
+                   repeats=1, gemm_sizes=(256,), compile=False)
 
 
 def domain_radius(domain: str, dim: int) -> float:
@@ -78,13 +83,16 @@ def measure_training(settings: BenchSettings, device: torch.device) -> list[dict
     skinny = {p: skinny_gemm_gflops(edges, 128, torch.float32 if p == "fp32" else torch.bfloat16, device)
               for p in ("fp32", "bf16")}
     flops = 3 * forward_flops(model, scene.window.shape[0], edges)  # forward + backward ~ 3 x forward
-    for name, make in (("gns-bench (split first edge layer)", lambda: build_model(ModelConfig(), scene, device)),
-                       ("PyG MessagePassing, concatenated inputs",
-                        lambda: concatenated_baseline(build_model(ModelConfig(), scene, device)))):
+    variants = [(OURS, False, lambda: build_model(ModelConfig(), scene, device)),
+                (BASELINE, False, lambda: concatenated_baseline(build_model(ModelConfig(), scene, device)))]
+    if settings.compile:
+        variants.insert(1, (OURS, True, lambda: build_model(ModelConfig(), scene, device)))
+    for name, compiled, make in variants:
         for precision in ("fp32", "bf16"):
-            seconds, loss = train_step_seconds(make(), scene, device, precision, settings.repeats)
+            seconds, loss = train_step_seconds(make(), scene, device, precision, settings.repeats, compiled)
             rate = flops / seconds / 1e9
-            rows.append({"model": name, "precision": precision, "nodes": scene.window.shape[0], "edges": edges,
+            rows.append({"model": name, "compiled": compiled, "precision": precision,
+                         "nodes": scene.window.shape[0], "edges": edges,
                          "step_s": seconds, "steps_per_s": 1 / seconds, "gflops": rate,
                          "gemm_peak_gflops": peaks[precision], "fraction_of_peak": rate / peaks[precision],
                          "skinny_gemm_gflops": skinny[precision], "fraction_of_skinny": rate / skinny[precision],
@@ -179,7 +187,7 @@ def _log(results: dict[str, Any], paths: list[Path]) -> None:
     with tracking.start_run("bench", f"bench-{device}", tags=tracking.environment_tags(device)) as run:
         metrics = {}
         for row in results["train"]:
-            key = "split" if row["model"].startswith("gns-bench") else "concat"
+            key = ("split_compiled" if row.get("compiled") else "split") if row["model"] == OURS else "concat"
             metrics[f"train/{key}_{row['precision']}_steps_per_s"] = row["steps_per_s"]
             metrics[f"train/{key}_{row['precision']}_fraction_of_peak"] = row["fraction_of_peak"]
         for row in results["inference"]:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gns_bench import tracking
+from gns_bench.config import Config
 from gns_bench.data.format import read_metadata
 from gns_bench.data.generate import dataset_path, ensure_dataset
 from gns_bench.pipeline import RUN_ID_FILE, train_run
@@ -32,8 +33,18 @@ class RunOutcome:
     metrics: dict[str, float] | None = None
 
 
+KEY_VERSION = 2  # 1: every config field in the key (before 2026-11-22)
+_MISSING = object()
+
+
 def run_key(run: PlannedRun, dataset_hash: str) -> str:
-    payload = {"config": run.config.to_dict(), "domain": run.domain, "dataset_hash": dataset_hash}
+    """Only the config values that differ from `Config()`'s enter the key, so adding a config field with a
+    default leaves every existing run's key (and its FINISHED status) as it was. Changing an existing
+    default changes what the keys that omit it mean: bump `KEY_VERSION` with it."""
+    defaults = Config().to_dict()
+    config = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
+              for section, values in run.config.to_dict().items()}
+    payload = {"config": config, "domain": run.domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
 

@@ -140,6 +140,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)
+    if tc.compile:
+        simulator.network.compile(dynamic=True)  # in place: parameter names and checkpoints unchanged
     model = group.wrap(simulator)
     optimiser = adam(simulator.parameters(), learning_rate(0, tc))
     out_dir = Path(out_dir)

@@ -200,3 +200,27 @@ def test_a_failing_run_is_recorded_failed_and_the_sweep_goes_on(sweeps: Path, tm
     runs = {r.info.run_name: r for r in runs_of(sweep.experiment)}
     assert runs[failed.name].info.status == "FAILED"
     assert "diverged on purpose" in runs[failed.name].data.tags["error"]
+
+
+def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A config field added later with a default must not change the keys of runs already done."""
+    import dataclasses
+
+    from gns_bench.config import Config
+    from gns_bench.sweep.runner import run_key
+
+    run = next(iter(load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("smoke")))
+    key = run_key(run, "abc")
+    assert run_key(run, "abd") != key  # the dataset is in the key
+    changed = dataclasses.replace(run, config=dataclasses.replace(
+        run.config, train=dataclasses.replace(run.config.train, compile=not run.config.train.compile)))
+    assert run_key(changed, "abc") != key  # a non-default value is in the key
+    without = Config.to_dict
+
+    def older_config(self: Config) -> dict:  # as if `train.compile` did not exist yet
+        values = without(self)
+        del values["train"]["compile"]
+        return values
+
+    monkeypatch.setattr(Config, "to_dict", older_config)
+    assert run_key(run, "abc") == key

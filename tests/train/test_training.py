@@ -63,3 +63,16 @@ def test_bf16_training_tracks_fp32(tiny_dataset: Path, tmp_path: Path) -> None:
     assert runs["fp32"] != runs["bf16"]  # bf16 really ran
     first_fp32, first_bf16 = runs["fp32"][0], runs["bf16"][0]
     assert abs(first_bf16 - first_fp32) / first_fp32 < 0.05
+
+
+@pytest.mark.slow  # inductor compiles for about a minute
+def test_compiled_training_tracks_eager_and_checkpoints_load_eagerly(tiny_dataset: Path, tmp_path: Path) -> None:
+    runs = {}
+    for compiled in (False, True):
+        config = load_config(None, QUICK + ["train.steps=5", f"train.compile={str(compiled).lower()}"])
+        runs[compiled] = train(config, tiny_dataset, tmp_path / str(compiled), progress=False)
+    eager, compiled = runs[False].losses, runs[True].losses
+    np.testing.assert_allclose(compiled, eager, rtol=1e-3)  # the same function, fused differently
+    simulator, _, _ = load_simulator(runs[True].checkpoint)  # parameter names unchanged by compiling
+    reference, _, _ = load_simulator(runs[False].checkpoint)
+    assert simulator.state_dict().keys() == reference.state_dict().keys()
