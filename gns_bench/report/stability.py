@@ -51,7 +51,7 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
         horizon = f"{steps / length:.2g}x ({steps:.0f} of {total:.0f} steps" + \
                   (", no monitor tripped)" if steps >= total else ", a monitor stopped it)")
     else:
-        horizon = "not run"
+        horizon = _evaluation_horizon(row)
     factor = row.metric("stress/scale/largest_stable_factor")
     if math.isfinite(factor):
         particles = row.metric(f"stress/scale/x{factor:g}/particles") if factor else math.nan
@@ -59,6 +59,21 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
     else:
         scale = "not run"
     return horizon, scale
+
+
+def _evaluation_horizon(row: RunRow) -> str:
+    """Without a horizon test, the test split's full-length evaluation rollouts still bound the stable horizon
+    at 1x the training length: the fewest steps any of them ran before a monitor stopped it."""
+    with tempfile.TemporaryDirectory() as tmp:
+        results = load_rollouts(row.run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
+    if not results:
+        return "not run"
+    ran = min(r.predicted.shape[0] for r in results)
+    full = min(r.ground_truth.shape[0] for r in results)
+    rollouts = f"the {len(results)} test rollout{'s' if len(results) != 1 else ''}"
+    if ran >= full:
+        return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)"
+    return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)"
 
 
 def trips(row: RunRow) -> list[str]:

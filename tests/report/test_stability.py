@@ -46,7 +46,12 @@ def stressed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     outcomes = run_sweep(load_sweep(path), "smoke", data_root=root / "data", runs_root=root / "runs",
                          progress=False, echo=lambda _: None)
     assert [o.status for o in outcomes] == ["FINISHED"], [o.error for o in outcomes]
-    return {"sweep": path, "root": root, "run_id": outcomes[0].run_id}
+    # The same without a horizon test: the report bounds the horizon from the test evaluation's rollouts.
+    short = root / "sweeps" / "stress" / "tiny_precision.toml"
+    short.write_text(STRESS.replace('tests = ["precision", "horizon", "scale"]', 'tests = ["precision"]'))
+    assert [o.status for o in run_sweep(load_sweep(short), "smoke", data_root=root / "data",
+                                        runs_root=root / "runs", progress=False, echo=lambda _: None)] == ["FINISHED"]
+    return {"sweep": path, "short": short, "root": root, "run_id": outcomes[0].run_id}
 
 
 def test_stress_results_are_logged_with_the_training_run(stressed: dict[str, Path]) -> None:
@@ -74,6 +79,15 @@ def test_stability_report_shows_tests_skips_and_figures(stressed: dict[str, Path
     for figure in figures:
         image = matplotlib.image.imread(tmp_path / figure)
         assert min(image.shape[:2]) > 100 and image.std() > 0
+
+
+def test_without_a_horizon_test_the_evaluation_rollouts_bound_the_horizon(stressed: dict[str, Path],
+                                                                          tmp_path: Path) -> None:
+    sweep = load_sweep(stressed["short"])
+    text = write_stability_report("smoke", tmp_path, [sweep]).read_text()
+    row = next(line for line in text.splitlines() if line.startswith(f"| {sweep.name} | tiny |"))
+    # the smoke tier's evaluation rolls out 10 steps (sweeps/tiers.toml)
+    assert re.search(r"\| (>= 1x \(10 steps|\S+x \(\d+ of 10 steps) of the 1 test rollouts?[^|]*\| not run \|", row), row
 
 
 def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
