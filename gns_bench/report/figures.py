@@ -14,7 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
-from gns_bench.evaluate.plots import plot_rollout, type_colours  # noqa: E402
+from gns_bench.evaluate.plots import VIEW_AXES, plot_rollout, type_colours  # noqa: E402
 from gns_bench.evaluate.rollout import RolloutResult  # noqa: E402
 
 DPI = 80
@@ -125,9 +125,9 @@ def _thin(result: RolloutResult, max_particles: int = 5000) -> RolloutResult:
 
 
 def rollout_png(result: RolloutResult, path: Path, title: str) -> Path:
-    """Ground truth and prediction at 4 steps (3D data projected on its first and last axes)."""
+    """Ground truth and prediction at 4 steps (3D data seen from the side, `VIEW_AXES`)."""
     result = _thin(result)
-    dims = (0, result.predicted.shape[2] - 1)
+    dims = VIEW_AXES
     limits = _extent(result, dims)
     bounds = [[0.0, 1.0]] * result.predicted.shape[2]
     bounds[dims[0]], bounds[dims[1]] = limits[0], limits[1]
@@ -141,7 +141,7 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
     if k == 0:
         raise ValueError("empty rollout: nothing to animate")
     steps = np.unique(np.linspace(0, k - 1, min(max_frames, k)).round().astype(int))
-    dims = [0, result.predicted.shape[2] - 1]
+    dims = list(VIEW_AXES)
     limits = _extent(result, (dims[0], dims[1]))
     colours = type_colours(result.particle_type)
     size = float(np.clip(3000.0 / len(result.particle_type), 1.0, 10.0))  # visible dots for small scenes too
