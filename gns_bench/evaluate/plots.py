@@ -25,9 +25,9 @@ def type_colours(particle_type: np.ndarray) -> list[str]:
     return [type_colour(t) for t in particle_type]
 
 
-# The axes pictures of rollouts show: x and y. In 2D that is the whole scene; in 3D it is a side view, since
-# every 3D domain here (and in the paper's datasets) has gravity along -y, so falling and leaking through the
-# floor show (a view along y would hide them).
+# Rollout pictures plot the x and y axes. In 2D that is the whole scene. In 3D it is a side view: every 3D
+# domain generated here has gravity along -y, so particles falling or leaking through
+# the floor stay visible (a view down the y axis would hide them).
 VIEW_AXES = (0, 1)
 
 
