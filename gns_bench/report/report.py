@@ -67,6 +67,11 @@ def budget(rows: list[RunRow]) -> str:
     horizon = mean_std([r.metric("rollout_steps") for r in done])[0]
     models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
                      for r in done})
+    # fp32 (the paper's) unless a run trained in reduced precision; torch.compile changes speed, not the function
+    precisions = sorted({r.param("train.precision", "fp32") + (" compiled" if r.param("train.compile") == "True"
+                                                                else "") for r in done})
+    if precisions != ["fp32"]:
+        models = [f"{m}, {'/'.join(precisions)}" for m in models]
     return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
             f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
 
