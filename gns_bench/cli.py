@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 from gns_bench.config import ConfigError
@@ -330,6 +332,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def interrupt_on_signals() -> None:
+    """SIGTERM (what SLURM, `kill` and container stops send) acts as Ctrl-C: training checkpoints its last
+    step, the MLflow run ends KILLED, and rerunning resumes it. SIGINT is restored too, for runs started in
+    the background (`nohup ... &`), where the shell starts them with SIGINT ignored."""
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, interrupt)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
@@ -350,5 +365,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def run() -> int:
+    """The `gns-bench` command: `main` with the signal handling a long-running process needs."""
+    interrupt_on_signals()
+    return main()
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run())

@@ -79,3 +79,24 @@ def test_bad_dataset_gives_a_clear_error(tmp_path: Path, capsys: pytest.CaptureF
     assert "nowhere/metadata.json: no such file" in capsys.readouterr().err
     assert main(["train", str(tmp_path), "model.latent_size=0"]) == 2
     assert "model.latent_size: must be > 0" in capsys.readouterr().err
+
+
+def test_sigterm_interrupts_like_ctrl_c() -> None:
+    """SLURM and `kill` send SIGTERM: the command must stop the way Ctrl-C stops it (checkpoint, KILLED)."""
+    import os
+    import signal
+    import time
+
+    from gns_bench.cli import interrupt_on_signals
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a background job (`nohup ... &`) starts
+    try:
+        interrupt_on_signals()
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signum)
+                time.sleep(1)  # the handler raises at once; this only bounds the wait
+    finally:
+        signal.signal(signal.SIGTERM, before[0])
+        signal.signal(signal.SIGINT, before[1])
