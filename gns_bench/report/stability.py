@@ -50,30 +50,40 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
     if math.isfinite(steps):
         horizon = f"{steps / length:.2g}x ({steps:.0f} of {total:.0f} steps" + \
                   (", no monitor tripped)" if steps >= total else ", a monitor stopped it)")
+        unstable_at_training_length = steps < min(total, length)  # a monitor stopped it that early
     else:
-        horizon = _evaluation_horizon(row)
+        horizon, unstable_at_training_length = _evaluation_horizon(row)
     factor = row.metric("stress/scale/largest_stable_factor")
     if math.isfinite(factor):
         particles = row.metric(f"stress/scale/x{factor:g}/particles") if factor else math.nan
         scale = f"{factor:g}x ({particles:,.0f} particles)" if factor else "none stable"
+    elif unstable_at_training_length:
+        # A scale counts as stable when its rollouts run their whole length; this model's rollouts already
+        # stop within the training length at the training scale, so no scale (1x included) qualifies.
+        scale = "none: unstable at the training scale already (horizon < 1x); no larger scene run"
     else:
         scale = "not run"
     return horizon, scale
 
 
-def _evaluation_horizon(row: RunRow) -> str:
-    """Without a horizon test, the test split's full-length evaluation rollouts still bound the stable horizon
-    at 1x the training length: the fewest steps any of them ran before a monitor stopped it."""
+def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
+    """Without a horizon test, the test split's evaluation rollouts still bound the stable horizon: the fewest
+    steps any of them ran before a monitor stopped it, as a multiple of the training length when they ran
+    whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one."""
     with tempfile.TemporaryDirectory() as tmp:
         results = load_rollouts(row.run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
     if not results:
-        return "not run"
+        return "not run", False
     ran = min(r.predicted.shape[0] for r in results)
     full = min(r.ground_truth.shape[0] for r in results)
     rollouts = f"the {len(results)} test rollout{'s' if len(results) != 1 else ''}"
-    if ran >= full:
-        return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)"
-    return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)"
+    stopped = ran < full
+    if row.param("eval.rollout_steps", "None") not in ("", "None"):  # cut short: no multiple of the length
+        what = "a monitor stopped one" if stopped else "no monitor tripped"
+        return f"{ran} of {full} steps of {rollouts} (evaluation cut at {full} steps), {what}", stopped
+    if not stopped:
+        return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)", False
+    return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)", True
 
 
 def trips(row: RunRow) -> list[str]:

@@ -87,8 +87,11 @@ def test_without_a_horizon_test_the_evaluation_rollouts_bound_the_horizon(stress
     text = write_stability_report("smoke", tmp_path, [sweep]).read_text()
     row = next(line for line in text.splitlines() if line.startswith(f"| {sweep.name} | tiny |"))
     # the smoke tier's evaluation rolls out 10 steps (sweeps/tiers.toml)
-    cell = r"\| (>= 1x \(10 steps|\S+x \(\d+ of 10 steps) of the 1 test rollout[^|]*\| not run \|"
-    assert re.search(cell, row), row
+    cell = r"\| \d+ of 10 steps of the 1 test rollout \(evaluation cut at 10 steps\), ([^|]*)\| ([^|]*) \|"
+    match = re.search(cell, row)
+    assert match, row
+    stopped = match.group(1).startswith("a monitor stopped")
+    assert match.group(2).startswith("none: unstable") if stopped else match.group(2) == "not run", row
 
 
 def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
@@ -102,3 +105,28 @@ def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture
     assert [r.data.tags["kind"] for r in runs] == ["stress"]
     assert main(["stress", str(run_dir), str(dataset), "model.latent_size=4"]) == 2
     assert main(["stress", str(run_dir), str(dataset), 'stress.tests=["bogus"]']) == 2
+
+
+class _Row:
+    """The part of a RunRow that `stable_cells` reads when the horizon test ran."""
+
+    def __init__(self, **metrics: float):
+        self.metrics = metrics
+
+    def metric(self, name: str) -> float:
+        return self.metrics.get(name.removeprefix("stress/").replace("/", "_"), float("nan"))
+
+
+def test_scale_cell_says_none_when_the_model_is_unstable_at_the_training_scale() -> None:
+    from gns_bench.report.stability import stable_cells
+
+    # stopped by a monitor at step 44 of 1200, within the training length of 150: no scale can be stable
+    horizon, scale = stable_cells(_Row(horizon_stable_steps=44, horizon_training_length=150, horizon_steps=1200))
+    assert horizon.startswith("0.29x (44 of 1200 steps, a monitor stopped it") and scale.startswith("none: unstable")
+    # a horizon test cut at 6 steps that nothing stopped says nothing about scale
+    horizon, scale = stable_cells(_Row(horizon_stable_steps=6, horizon_training_length=150, horizon_steps=6))
+    assert "no monitor tripped" in horizon and scale == "not run"
+    # a scale test that ran is reported as such
+    _, scale = stable_cells(_Row(horizon_stable_steps=44, horizon_training_length=150, horizon_steps=1200,
+                                 scale_largest_stable_factor=0.0))
+    assert scale == "none stable"
