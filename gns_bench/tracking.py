@@ -90,7 +90,16 @@ def experiment_id(name: str) -> str:
     uri = tracking_uri()
     if uri.startswith("sqlite:///"):  # a local store: keep its artifacts beside the database file
         location = (Path(uri.removeprefix("sqlite:///")).resolve().parent / DEFAULT_ARTIFACTS / name).as_uri()
-    return mlflow.create_experiment(name, artifact_location=location)
+    from mlflow.exceptions import MlflowException
+
+    try:
+        return mlflow.create_experiment(name, artifact_location=location)
+    except MlflowException:
+        # Parallel runs of one sweep (submitit, torchrun) may create it at the same moment: use theirs.
+        experiment = mlflow.get_experiment_by_name(name)
+        if experiment is None:
+            raise
+        return experiment.experiment_id
 
 
 class Run:

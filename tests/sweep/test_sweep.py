@@ -224,3 +224,19 @@ def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch
 
     monkeypatch.setattr(Config, "to_dict", older_config)
     assert run_key(run, "abc") == key
+
+
+def test_experiment_created_by_a_parallel_run_is_reused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two runs of a sweep starting at once (submitit, torchrun) may both find no experiment and both create
+    it; the one that loses the race must use the other's, not fail."""
+    first = tracking.experiment_id("race")
+    lookup = mlflow.get_experiment_by_name
+    calls = []
+
+    def not_yet_there(name: str):  # the check happens just before the other process creates it
+        calls.append(name)
+        return None if len(calls) == 1 else lookup(name)
+
+    monkeypatch.setattr(mlflow, "get_experiment_by_name", not_yet_there)
+    assert tracking.experiment_id("race") == first
+    assert len(calls) == 2
