@@ -67,10 +67,14 @@ def test_bf16_training_tracks_fp32(tiny_dataset: Path, tmp_path: Path) -> None:
 
 @pytest.mark.slow  # inductor compiles for about a minute
 def test_compiled_training_tracks_eager_and_checkpoints_load_eagerly(tiny_dataset: Path, tmp_path: Path) -> None:
+    from torch._dynamo.utils import counters
+
     runs = {}
     for compiled in (False, True):
+        counters.clear()
         config = load_config(None, QUICK + ["train.steps=5", f"train.compile={str(compiled).lower()}"])
         runs[compiled] = train(config, tiny_dataset, tmp_path / str(compiled), progress=False)
+        assert (counters["stats"]["unique_graphs"] > 0) == compiled  # dynamo really traced the network
     eager, compiled = runs[False].losses, runs[True].losses
     np.testing.assert_allclose(compiled, eager, rtol=1e-3)  # the same function, fused differently
     simulator, _, _ = load_simulator(runs[True].checkpoint)  # parameter names unchanged by compiling
