@@ -8,6 +8,7 @@ Everything is read from MLflow (metrics, tags, and the curves each test logged a
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import math
 import tempfile
@@ -70,13 +71,11 @@ def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
     """Without a horizon test, the test split's evaluation rollouts still bound the stable horizon: the fewest
     steps any of them ran before a monitor stopped it, as a multiple of the training length when they ran
     whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one."""
-    with tempfile.TemporaryDirectory() as tmp:
-        results = load_rollouts(row.run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
-    if not results:
+    lengths = _rollout_lengths(row.run_id, row.split)
+    if lengths is None:
         return "not run", False
-    ran = min(r.predicted.shape[0] for r in results)
-    full = min(r.ground_truth.shape[0] for r in results)
-    rollouts = f"the {len(results)} test rollout{'s' if len(results) != 1 else ''}"
+    count, ran, full = lengths
+    rollouts = f"the {count} test rollout{'s' if count != 1 else ''}"
     stopped = ran < full
     if row.param("eval.rollout_steps", "None") not in ("", "None"):  # cut short: no multiple of the length
         what = "a monitor stopped one" if stopped else "no monitor tripped"
@@ -84,6 +83,17 @@ def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
     if not stopped:
         return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)", False
     return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)", True
+
+
+@functools.lru_cache(maxsize=256)
+def _rollout_lengths(run_id: str, split: str) -> tuple[int, int, int] | None:
+    """(rollouts, fewest predicted steps, fewest ground-truth steps) of a run's evaluation rollouts, downloaded
+    once per run: the summary table and the run's own section both ask."""
+    with tempfile.TemporaryDirectory() as tmp:
+        results = load_rollouts(run_id, f"evaluation/{split}_rollouts.npz", Path(tmp))
+    if not results:
+        return None
+    return (len(results), min(r.predicted.shape[0] for r in results), min(r.ground_truth.shape[0] for r in results))
 
 
 def trips(row: RunRow) -> list[str]:
