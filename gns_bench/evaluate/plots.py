@@ -26,8 +26,8 @@ def type_colours(particle_type: np.ndarray) -> list[str]:
 
 
 # Rollout pictures plot the x and y axes. In 2D that is the whole scene. In 3D it is a side view: every 3D
-# domain generated here has gravity along -y, so particles falling or leaking through
-# the floor stay visible (a view down the y axis would hide them).
+# domain generated here has gravity along -y, so particles falling or leaking through the floor stay
+# visible (a view down the y axis would hide them).
 VIEW_AXES = (0, 1)
 
 

@@ -147,8 +147,8 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
     size = float(np.clip(3000.0 / len(result.particle_type), 1.0, 10.0))  # visible dots for small scenes too
     fig, axes = plt.subplots(1, 2, figsize=(5.0, 2.8))
     scatters = []
+    start = result.ground_truth[0][:, dims]  # placeholders; `draw` sets every frame's points
     for ax, label in ((axes[0], "ground truth"), (axes[1], "GNS")):
-        start = result.ground_truth[0][:, dims]  # placeholders; `draw` sets every frame's points
         scatters.append(ax.scatter(start[:, 0], start[:, 1], s=size, c=colours, linewidths=0))
         ax.set_xlim(limits[0])
         ax.set_ylim(limits[1])
