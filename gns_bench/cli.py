@@ -171,6 +171,10 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"],
                    help="submitit executor (default: SLURM when available, else local)")
+    p.add_argument("--no-share", action="store_true",
+                   help="train every run here, even one another sweep already trained with the same config and "
+                        "data (by default it is recorded from that run: an ablation's default point is the "
+                        "domain sweep's run)")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--runs-root", type=Path, default=Path("runs"))
 
@@ -181,14 +185,15 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 
     sweep = load_sweep(args.file)
     if args.dry_run:
-        runs, status = prepare(sweep, args.tier, args.data_root, generate=False)
+        runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share)
         print(format_plan(sweep, args.tier, runs, status))
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
-                         launcher=args.launcher, cluster=args.cluster)
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("FINISHED", "SKIPPED", "FAILED")}
+                         launcher=args.launcher, cluster=args.cluster, share=not args.no_share)
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("FINISHED", "SKIPPED", "SHARED", "FAILED")}
     print(f"sweep {sweep.name}: {counts['FINISHED']} finished, {counts['SKIPPED']} skipped (already finished), "
-          f"{counts['FAILED']} failed; MLflow experiment '{sweep.experiment}'")
+          f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed; "
+          f"MLflow experiment '{sweep.experiment}'")
     for outcome in outcomes:
         if outcome.status == "FAILED":
             print(f"  FAILED {outcome.name}: {outcome.error}")

@@ -181,17 +181,55 @@ class RunRecord:
     tags: dict[str, str] = field(default_factory=dict)
 
 
-def search_sweep_runs(experiment: str, tier: str | None = None) -> list[RunRecord]:
-    """Every (not deleted) run of an experiment, newest first; only those tagged `tier` when given.
-    An experiment that does not exist has no runs."""
+def search_runs(filter_string: str = "", experiment: str | None = None) -> list[RunRecord]:
+    """The (not deleted) runs matching an MLflow filter string, newest first: those of `experiment`, or of
+    every experiment when it is None. An experiment that does not exist has no runs."""
     mlflow = _mlflow()
-    if mlflow.get_experiment_by_name(experiment) is None:
+    if experiment is not None and mlflow.get_experiment_by_name(experiment) is None:
         return []
-    filter_string = f"tags.tier = '{tier}'" if tier else ""
-    runs = mlflow.search_runs(experiment_names=[experiment], filter_string=filter_string, output_format="list",
+    where = {"experiment_names": [experiment]} if experiment is not None else {"search_all_experiments": True}
+    runs = mlflow.search_runs(**where, filter_string=filter_string, output_format="list",
                               order_by=["attributes.start_time DESC"])
     return [RunRecord(r.info.run_id, r.info.run_name or "", r.info.status, int(r.info.start_time or 0),
                       dict(r.data.params), dict(r.data.metrics), dict(r.data.tags)) for r in runs]
+
+
+def search_sweep_runs(experiment: str, tier: str | None = None) -> list[RunRecord]:
+    """Every (not deleted) run of an experiment, newest first; only those tagged `tier` when given."""
+    return search_runs(f"tags.tier = '{tier}'" if tier else "", experiment)
+
+
+def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[str, Any],
+             tags: dict[str, Any]) -> str:
+    """A new FINISHED run in `experiment` that stands for `source` without retraining it: `source`'s params
+    (with `params` over them), latest metrics and tags (with `tags` over them, and `shared_from` = its run
+    id). Its artifacts stay with `source`, where `shared_from` leads. Returns the new run's id; a copy that
+    fails half-way is ended FAILED, so it never looks complete."""
+    import time
+
+    from mlflow.entities import Metric, Param
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=tracking_uri())
+    all_tags = {k: v for k, v in source.tags.items() if not k.startswith("mlflow.")}
+    all_tags.update({k: str(v) for k, v in tags.items()})
+    all_tags["shared_from"] = source.run_id
+    run_id = client.create_run(experiment_id(experiment), run_name=run_name, tags=all_tags).info.run_id
+    try:
+        now = int(time.time() * 1000)
+        merged = {**source.params, **{k: "None" if v is None else str(v) for k, v in params.items()}}
+        entities = [Param(k, v) for k, v in merged.items()] + [Metric(k, v, now, 0)
+                                                                 for k, v in source.metrics.items()]
+        for start in range(0, len(entities), 90):  # MLflow caps a batch at 100 params
+            chunk = entities[start:start + 90]
+            client.log_batch(run_id, params=[e for e in chunk if isinstance(e, Param)],
+                             metrics=[e for e in chunk if isinstance(e, Metric)])
+    except BaseException as exc:
+        client.set_tag(run_id, "error", f"copying run {source.run_id}: {type(exc).__name__}: {exc}"[:5000])
+        client.set_terminated(run_id, status="FAILED")
+        raise
+    client.set_terminated(run_id, status="FINISHED")
+    return run_id
 
 
 def download_artifacts(run_id: str, artifact_path: str, dst: str | Path) -> Path | None:

@@ -40,6 +40,18 @@ class RunRow:
         return self.record.run_id if self.record else ""
 
     @property
+    def artifact_run_id(self) -> str:
+        """Where the run's artifacts (rollouts, stress results) are: the run that trained it, when this run is a
+        copy shared from another sweep's (`gns-bench sweep` records those instead of retraining)."""
+        return self.tag("shared_from") or self.run_id
+
+    @property
+    def shared_from(self) -> str:
+        """`<sweep>/<run> (<run id>)` of the run this one is a copy of; "" when it trained itself."""
+        source = self.tag("shared_from")
+        return f"{self.tag('shared_from_run', '?')} (`{source}`)" if source else ""
+
+    @property
     def split(self) -> str:
         return self.record.params.get("eval.split", "test") if self.record else "test"
 

@@ -51,8 +51,16 @@ def _status_cell(rows: list[RunRow]) -> str:
     return "ok" if not bad else f"ok ({len(bad)} of {len(rows)} {', '.join(sorted({r.status for r in bad}))})"
 
 
+def run_id_cell(row: RunRow) -> str:
+    """The run id, with its status when it did not finish, and the run it copies when another sweep trained it."""
+    if not row.run_id:
+        return "—"
+    return (f"`{row.run_id}`" + ("" if row.ok else f" ({row.status})")
+            + (f", shared from {row.shared_from}" if row.shared_from else ""))
+
+
 def _run_ids(rows: list[RunRow]) -> str:
-    return "<br>".join(f"`{r.run_id}`" + ("" if r.ok else f" ({r.status})") for r in rows if r.run_id) or "—"
+    return "<br>".join(run_id_cell(r) for r in rows if r.run_id) or "—"
 
 
 def budget(rows: list[RunRow]) -> str:
@@ -187,7 +195,7 @@ def runs_table(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
         cells = [r.planned.name, *[axis_value_label(r.planned.axes[a]) for a in sweep.axes], str(r.planned.seed),
-                 "ok" if r.ok else f"**{r.status}**", f"`{r.run_id}`" if r.run_id else "—",
+                 "ok" if r.ok else f"**{r.status}**", run_id_cell(r),
                  *(fmt(r.metric(m)) for m in METRICS)]
         lines.append("| " + " | ".join(cells) + " |")
     settings = sorted({distribution_settings(r) for r in rows if r.ok})
@@ -247,13 +255,13 @@ def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
         return lines + ["No finished run with rollouts.", ""]
     row = done[0]
     with tempfile.TemporaryDirectory() as tmp:
-        results = [r for r in load_rollouts(row.run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
+        results = [r for r in load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
                    if r.predicted.shape[0]]
     if not results:
         return lines + [f"Run `{row.run_id}` logged no rollouts.", ""]
     errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
               for r in results]
-    lines.append(f"From run `{row.run_id}` ({row.planned.name}, lowest rollout MSE), split '{row.split}': "
+    lines.append(f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{row.split}': "
                  "ground truth above / left, GNS below / right.")
     lines.append("")
     for label, index in (("best", int(np.argmin(errors))), ("worst", int(np.argmax(errors)))):

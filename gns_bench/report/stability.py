@@ -36,7 +36,7 @@ def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
     """The stress tests a run logged, from its `stress/<test>.json` artifacts."""
     results = []
     for name in filter(None, row.tag("stress/tests").split(",")):
-        local = tracking.download_artifacts(row.run_id, f"stress/{name}.json", workdir)
+        local = tracking.download_artifacts(row.artifact_run_id, f"stress/{name}.json", workdir)
         if local is None:
             continue
         data = json.loads(local.read_text())
@@ -71,7 +71,7 @@ def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
     """Without a horizon test, the test split's evaluation rollouts still bound the stable horizon: the fewest
     steps any of them ran before a monitor stopped it, as a multiple of the training length when they ran
     whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one."""
-    lengths = _rollout_lengths(row.run_id, row.split)
+    lengths = _rollout_lengths(row.artifact_run_id, row.split)
     if lengths is None:
         return "not run", False
     count, ran, full = lengths
@@ -103,7 +103,7 @@ def trips(row: RunRow) -> list[str]:
 
 
 def _per_trajectory(row: RunRow, variant: str, workdir: Path) -> list[dict[str, float]]:
-    local = tracking.download_artifacts(row.run_id, f"generalisation/{variant}/{variant}_per_trajectory.csv",
+    local = tracking.download_artifacts(row.artifact_run_id, f"generalisation/{variant}/{variant}_per_trajectory.csv",
                                         workdir)
     if local is None:
         return []
@@ -195,7 +195,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
                                     _held_out(sweep.domain))
             lines += [f"![error against the context]({figure.name})", ""]
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
-        results = [r for r in load_rollouts(row.run_id, npz, workdir) if r.predicted.shape[0]]
+        results = [r for r in load_rollouts(row.artifact_run_id, npz, workdir) if r.predicted.shape[0]]
         if results:
             errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
                       for r in results]

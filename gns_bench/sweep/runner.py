@@ -2,9 +2,11 @@
 
 A run is identified by its key: a hash of its resolved config, its domain and its dataset's content
 hash. A run whose key has a FINISHED MLflow run in the sweep's experiment is skipped; deleting that
-MLflow run makes it run again. A run that fails is recorded FAILED with its error and the sweep goes on;
-Ctrl-C marks the run in flight KILLED and stops the sweep, and the next invocation resumes it from its
-checkpoint.
+MLflow run makes it run again. A run whose key another sweep already trained (every ablation's default
+point is the domain sweep's run) is shared, not retrained: the sweep's experiment gets a copy of that run's
+params and metrics, tagged `shared_from` with its run id (where its artifacts stay). A run that fails is
+recorded FAILED with its error and the sweep goes on; Ctrl-C marks the run in flight KILLED and stops the
+sweep, and the next invocation resumes it from its checkpoint.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from gns_bench.sweep.spec import PlannedRun, SweepSpec
 @dataclass
 class RunOutcome:
     name: str
-    status: str  # FINISHED, SKIPPED, FAILED
+    status: str  # FINISHED, SKIPPED, SHARED, FAILED
     run_id: str = ""
     error: str = ""
     metrics: dict[str, float] | None = None
@@ -50,14 +52,27 @@ def run_key(run: PlannedRun, dataset_hash: str) -> str:
 
 def finished_keys(experiment: str) -> dict[str, str]:
     """run_key -> run id of the FINISHED (not deleted) runs of an experiment."""
-    import mlflow
+    runs = tracking.search_runs("attributes.status = 'FINISHED'", experiment)
+    return {r.tags["run_key"]: r.run_id for r in runs if "run_key" in r.tags}
 
-    tracking.configure()
-    if mlflow.get_experiment_by_name(experiment) is None:
-        return {}
-    runs = mlflow.search_runs(experiment_names=[experiment], filter_string="attributes.status = 'FINISHED'",
-                              output_format="list")
-    return {r.data.tags["run_key"]: r.info.run_id for r in runs if "run_key" in r.data.tags}
+
+def trained_keys() -> dict[str, tracking.RunRecord]:
+    """run_key -> the newest FINISHED sweep run of any experiment that trained it (copies excluded)."""
+    runs = tracking.search_runs("attributes.status = 'FINISHED' and tags.kind = 'sweep'")
+    trained: dict[str, tracking.RunRecord] = {}
+    for record in runs:  # newest first
+        if "run_key" in record.tags and "shared_from" not in record.tags:
+            trained.setdefault(record.tags["run_key"], record)
+    return trained
+
+
+def _sweep_params(run: PlannedRun) -> dict[str, str]:
+    return {"sweep.name": run.sweep, "sweep.tier": run.tier, "sweep.domain": run.domain,
+            "sweep.dataset_tier": run.dataset_tier}
+
+
+def _sweep_tags(run: PlannedRun, key: str) -> dict[str, str]:
+    return {"run_key": key, "sweep": run.sweep, "tier": run.tier, "axes": ",".join(run.axes), "kind": "sweep"}
 
 
 def run_dir(runs_root: Path, run: PlannedRun) -> Path:
@@ -92,11 +107,7 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     try:
         summary = train_run(
             run.config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
-            progress=progress,
-            extra_params={"sweep.name": run.sweep, "sweep.tier": run.tier, "sweep.domain": run.domain,
-                          "sweep.dataset_tier": run.dataset_tier},
-            extra_tags={"run_key": key, "sweep": run.sweep, "tier": run.tier, "axes": ",".join(run.axes),
-                        "kind": "sweep"})
+            progress=progress, extra_params=_sweep_params(run), extra_tags=_sweep_tags(run, key))
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - the run is already recorded FAILED in MLflow; the sweep goes on
@@ -105,12 +116,24 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     return RunOutcome(run.name, "FINISHED", summary.run_id, metrics=summary.metrics)
 
 
-def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = True, progress: bool = True
-            ) -> tuple[list[PlannedRun], dict[str, str]]:
-    """Plan the runs and ensure their datasets; returns the runs and each run's status before running."""
+def share_run(run: PlannedRun, key: str, source: tracking.RunRecord) -> RunOutcome:
+    """Record `source` (trained by another sweep with the same key) as this planned run, without training."""
+    run_id = tracking.copy_run(source, f"sweep:{run.sweep}", run.name, params=_sweep_params(run),
+                               tags={**_sweep_tags(run, key), "shared_from_run": f"{source.tags.get('sweep', '?')}"
+                                                                                 f"/{source.name}"})
+    return RunOutcome(run.name, "SHARED", run_id, metrics=source.metrics)
+
+
+def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = True, progress: bool = True,
+            share: bool = True) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
+    """Plan the runs and ensure their datasets. Returns the runs, each run's status before running
+    ("finished", "to run", "shared with <sweep>/<run>", "dataset missing"), and the shared ones' (key,
+    trained run) by run name: those another sweep trained with the same key (none when `share` is off)."""
     runs = sweep.plan(tier)
     done = finished_keys(sweep.experiment)
-    status = {}
+    trained = trained_keys() if share else {}
+    status: dict[str, str] = {}
+    shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
         path = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
         if generate:
@@ -119,8 +142,15 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             status[run.name] = "dataset missing"
             continue
         key = run_key(run, read_metadata(path).content_hash or "")
-        status[run.name] = "finished" if key in done else "to run"
-    return runs, status
+        if key in done:
+            status[run.name] = "finished"
+        elif key in trained:
+            source = trained[key]
+            status[run.name] = f"shared with {source.tags.get('sweep', '?')}/{source.name}"
+            shared[run.name] = (key, source)
+        else:
+            status[run.name] = "to run"
+    return runs, status, shared
 
 
 def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str]) -> str:
@@ -135,13 +165,19 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 
 
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
-              launcher: str = "local", cluster: str | None = None, progress: bool = True,
+              launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
               echo: Callable[[str], None] = print) -> list[RunOutcome]:
-    runs, status = prepare(sweep, tier, data_root, progress=progress)
+    """Run what the sweep lacks at this tier. `share=False` trains runs another sweep already trained."""
+    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share)
     pending = [r for r in runs if status[r.name] == "to run"]
     outcomes = [RunOutcome(r.name, "SKIPPED") for r in runs if status[r.name] == "finished"]
     echo(f"sweep {sweep.name} (tier {tier}): {len(runs)} runs, {len(outcomes)} already finished, "
-         f"{len(pending)} to run")
+         f"{len(shared)} shared with other sweeps, {len(pending)} to run")
+    for run in runs:
+        if run.name in shared:
+            key, source = shared[run.name]
+            echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), recorded without training")
+            outcomes.append(share_run(run, key, source))
     if launcher == "local":
         for index, run in enumerate(pending, 1):
             echo(f"[{index}/{len(pending)}] {run.name}")

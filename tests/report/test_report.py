@@ -21,7 +21,7 @@ from gns_bench.report import write_report
 from gns_bench.report.collect import collect, domain_sweeps
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
-from gns_bench.report.report import write_domains_report
+from gns_bench.report.report import load_rollouts, write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
@@ -52,10 +52,14 @@ def swept(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         (sweeps / folder / f"{name}.toml").write_text(text)
     shutil.copy(SWEEPS_DIR / "tiers.toml", sweeps / "tiers.toml")
     paths = {"domain": sweeps / "domains" / "tiny.toml", "ablation": sweeps / "ablations" / "noise_std.toml"}
-    for path in paths.values():
+    statuses = {}
+    for kind, path in paths.items():
         outcomes = run_sweep(load_sweep(path), "smoke", data_root=root / "data", runs_root=root / "runs",
                              progress=False, echo=lambda _: None)
-        assert all(o.status == "FINISHED" for o in outcomes), [o.error for o in outcomes]
+        assert all(o.status in ("FINISHED", "SHARED") for o in outcomes), [o.error for o in outcomes]
+        statuses.update({f"{kind}/{o.name}": o.status for o in outcomes})
+    # The ablation's default point (noise 3e-4, seed 0) is the domain sweep's run: recorded, not retrained.
+    assert [name for name, status in statuses.items() if status == "SHARED"] == ["ablation/noise_std=0.0003-seed0"]
     return {**paths, "root": root}
 
 
@@ -114,6 +118,16 @@ def test_ablation_sweep_report_marks_missing_values(swept: dict[str, Path], tmp_
     assert len(missing_runs) == 2 and all("**missing**" in line for line in missing_runs)
     assert "OT method: exact EMD" in text
     check_figures(readme, {"ablation_noise_std.png", "time_vs_error.png", "rollout_best.gif"})
+
+    # The shared default point cites the domain run it copies, whose artifacts stand in for its own.
+    (domain_run,) = tracking.search_sweep_runs("sweep:domain-tiny", "smoke")
+    (shared,) = [r for r in collect(load_sweep(path), "smoke") if r.planned.name == "noise_std=0.0003-seed0"]
+    (line,) = [line for line in text.splitlines() if line.startswith("| noise_std=0.0003-seed0 ")]
+    assert f"shared from domain-tiny/seed0 (`{domain_run.run_id}`)" in line
+    assert shared.artifact_run_id == domain_run.run_id != shared.run_id
+    npz = f"evaluation/{shared.split}_rollouts.npz"
+    assert load_rollouts(shared.artifact_run_id, npz, tmp_path / "a") and not load_rollouts(shared.run_id, npz,
+                                                                                              tmp_path / "b")
 
 
 def test_domains_aggregate_keeps_missing_domains(swept: dict[str, Path], tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from mlflow.tracking import MlflowClient
 
 from gns_bench import tracking
 from gns_bench.cli import main
-from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.runner import prepare, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
 GRID = '''description = "2x2 test grid"
@@ -89,6 +89,57 @@ def test_smoke_sweep_end_to_end_skip_and_rerun(sweeps: Path, tmp_path: Path) -> 
     assert len(runs_of(sweep.experiment)) == 4
 
 
+def test_a_run_another_sweep_trained_is_shared_not_retrained(sweeps: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """An ablation's default point is the domain sweep's run: same config, same data, same key."""
+    own = GRID.replace("learning_rate = 1e-3", "learning_rate = 2e-3")  # keys no other test trains
+    base_path, abl_path = sweeps / "tests" / "base.toml", sweeps / "tests" / "abl.toml"
+    base_path.write_text(own.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[3]"))
+    abl_path.write_text(own.replace('"model.message_passing_steps" = [1, 2]\n', "")
+                        .replace("mlp_hidden_size = 8\n", "mlp_hidden_size = 8\nmessage_passing_steps = 3\n"))
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    (source,) = run_sweep(load_sweep(base_path), "smoke", **roots)
+    assert source.status == "FINISHED"
+
+    abl = load_sweep(abl_path)
+    _, status, _ = prepare(abl, "smoke", roots["data_root"])
+    assert status == {"noise_std=0.0-seed0": "to run",
+                      "noise_std=0.0003-seed0": "shared with test-base/message_passing_steps=3-seed0"}
+    outcomes = {o.name: o for o in run_sweep(abl, "smoke", **roots)}
+    assert {n: o.status for n, o in outcomes.items()} == {"noise_std=0.0-seed0": "FINISHED",
+                                                          "noise_std=0.0003-seed0": "SHARED"}
+    copy = next(r for r in runs_of(abl.experiment) if r.info.run_name == "noise_std=0.0003-seed0")
+    trained = mlflow.get_run(source.run_id)
+    assert copy.info.status == "FINISHED" and copy.info.run_id != source.run_id
+    assert copy.data.tags["shared_from"] == source.run_id
+    assert copy.data.tags["sweep"] == "test-abl" and copy.data.tags["axes"] == "train.noise_std"
+    assert copy.data.params["sweep.name"] == "test-abl" and copy.data.params["model.message_passing_steps"] == "3"
+    assert copy.data.metrics["test/rollout_mse"] == trained.data.metrics["test/rollout_mse"]
+    assert not (roots["runs_root"] / "test-abl" / "smoke" / "noise_std=0.0003-seed0").exists()  # nothing trained
+    assert [o.status for o in run_sweep(abl, "smoke", **roots)] == ["SKIPPED", "SKIPPED"]
+
+    unshared = sweeps / "tests" / "unshared.toml"
+    unshared.write_text(abl_path.read_text())
+    assert [o.status for o in run_sweep(load_sweep(unshared), "smoke", share=False, **roots)] == ["FINISHED"] * 2
+
+    # A copy that fails half-way ends FAILED, so it never passes for the run; the next attempt copies again.
+    from mlflow.tracking import MlflowClient as Client
+
+    def store_down(*args, **kwargs):
+        raise RuntimeError("store went away")
+
+    failing = sweeps / "tests" / "failing_copy.toml"
+    failing.write_text(abl_path.read_text())
+    monkeypatch.setattr(Client, "log_batch", store_down)
+    with pytest.raises(RuntimeError, match="store went away"):
+        run_sweep(load_sweep(failing), "smoke", **roots)
+    monkeypatch.undo()
+    (half,) = runs_of("sweep:test-failing_copy")
+    assert half.info.status == "FAILED" and "store went away" in half.data.tags["error"]
+    again = {o.name: o.status for o in run_sweep(load_sweep(failing), "smoke", **roots)}
+    assert again == {"noise_std=0.0-seed0": "SHARED", "noise_std=0.0003-seed0": "SHARED"}
+
+
 def test_dry_run_prints_the_table(sweeps: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = sweeps / "tests" / "dry.toml"
     path.write_text(GRID)
@@ -126,7 +177,8 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
     path = sweeps / "tests" / "interrupt.toml"
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
     sweep = load_sweep(path)
-    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    # share=False: the end-to-end test trained these configs already; this test is about training them
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
     from gns_bench.train import loop
 
     real, calls = loop.training_loss, {"n": 0}
@@ -158,7 +210,7 @@ def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
     sweep = load_sweep(path)
     outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs",
-                         launcher="submitit", cluster="local", progress=False)
+                         launcher="submitit", cluster="local", progress=False, share=False)
     assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"], [o.error for o in outcomes]
     runs = runs_of(sweep.experiment)
     assert sorted(r.data.params["model.message_passing_steps"] for r in runs) == ["1", "2"]
@@ -193,7 +245,8 @@ def test_a_failing_run_is_recorded_failed_and_the_sweep_goes_on(sweeps: Path, tm
         return real(simulator, *args, **kwargs)
 
     monkeypatch.setattr(loop, "training_loss", broken_for_m2)
-    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False,
+                         share=False)
     assert sorted(o.status for o in outcomes) == ["FAILED", "FINISHED"]
     failed = next(o for o in outcomes if o.status == "FAILED")
     assert "diverged on purpose" in failed.error and failed.run_id
