@@ -56,9 +56,11 @@ def finished_keys(experiment: str) -> dict[str, str]:
     return {r.tags["run_key"]: r.run_id for r in runs if "run_key" in r.tags}
 
 
-def trained_keys() -> dict[str, tracking.RunRecord]:
-    """run_key -> the newest FINISHED sweep run of any experiment that trained it (copies excluded)."""
-    runs = tracking.search_runs("attributes.status = 'FINISHED' and tags.kind = 'sweep'")
+def trained_keys(domain: str) -> dict[str, tracking.RunRecord]:
+    """run_key -> the newest FINISHED sweep run of any experiment that trained it (copies excluded), among
+    the runs on `domain` (the key holds the domain, so no other run can match)."""
+    runs = tracking.search_runs("attributes.status = 'FINISHED' and tags.kind = 'sweep' and "
+                                f"params.`sweep.domain` = '{domain}'")
     trained: dict[str, tracking.RunRecord] = {}
     for record in runs:  # newest first
         if "run_key" in record.tags and "shared_from" not in record.tags:
@@ -131,7 +133,8 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     trained run) by run name: those another sweep trained with the same key (none when `share` is off)."""
     runs = sweep.plan(tier)
     done = finished_keys(sweep.experiment)
-    trained = trained_keys() if share else {}
+    trained = {key: run for domain in {r.domain for r in runs} for key, run in trained_keys(domain).items()
+               } if share else {}
     status: dict[str, str] = {}
     shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
