@@ -133,8 +133,9 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     trained run) by run name: those another sweep trained with the same key (none when `share` is off)."""
     runs = sweep.plan(tier)
     done = finished_keys(sweep.experiment)
-    trained = {key: run for domain in {r.domain for r in runs} for key, run in trained_keys(domain).items()
-               } if share else {}
+    trained: dict[str, tracking.RunRecord] = {}
+    for domain in {r.domain for r in runs} if share else ():
+        trained.update(trained_keys(domain))
     status: dict[str, str] = {}
     shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
