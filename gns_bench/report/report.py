@@ -110,6 +110,14 @@ def budget_statement(rows: list[RunRow]) -> str:
         text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
                  f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
                  "their rollout MSE covers only the steps before the stop. ")
+    against_cv = [r.metric("rollout_mse") / r.metric("baseline_cv_rollout_mse") for r in done
+                  if r.metric("baseline_cv_rollout_mse") > 0]
+    against_cv = [x for x in against_cv if math.isfinite(x)]
+    if against_cv:
+        low, high = min(against_cv), max(against_cv)
+        span = f"{low:.2g}x" + (f" to {high:.2g}x" if high > low else "")
+        text += (f"On the same rollouts, the GNS's rollout MSE is {span} that of a constant-velocity "
+                 "extrapolation (below 1x: the model beats it). ")
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
     if any(t != "paper" for t in tiers):
         text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
@@ -121,17 +129,23 @@ def budget_statement(rows: list[RunRow]) -> str:
 # ----------------------------------------------------------------------------------------------
 
 DOMAIN_HEADER = ("| domain | simulator | dim | max N | K | one-step MSE | paper | ratio | rollout MSE | paper | ratio "
-                 "| CConv rollout (paper) | OT | MMD | KE error | budget | status | MLflow runs |")
+                 "| constant velocity (GNS / it) | CConv rollout (paper) | OT | MMD | KE error | budget | status "
+                 "| MLflow runs |")
 
 
 def domain_row(sweep: SweepSpec, rows: list[RunRow]) -> str:
     ref = domain_reference(sweep.domain)
     one_step = mean_std([r.metric("one_step_mse") for r in rows])[0]
     rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
+    # the trivial baseline on the same rollouts: a model that does not beat it has learned little dynamics
+    constant_velocity = mean_std([r.metric("baseline_cv_rollout_mse") for r in rows])[0]
+    baseline = "—" if not math.isfinite(constant_velocity) else (
+        f"{fmt(constant_velocity)} ({ratio(rollout, constant_velocity)})")
     cells = [ref.name if ref else sweep.domain, ref.simulator if ref else "—", str(ref.dim) if ref else "—",
              f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
              fmt(one_step), fmt(ref.one_step_mse) if ref else "—", ratio(one_step, ref.one_step_mse if ref else None),
              fmt(rollout), fmt(ref.rollout_mse) if ref else "—", ratio(rollout, ref.rollout_mse if ref else None),
+             baseline,
              fmt(ref.cconv_rollout_mse) if ref and ref.cconv_rollout_mse else "—",
              *(fmt(mean_std([r.metric(m) for r in rows])[0]) for m in ("ot", "mmd", "kinetic_energy_error")),
              budget(rows), _status_cell(rows), _run_ids(rows)]

@@ -39,7 +39,7 @@ ABLATION = ('description = "noise std on tiny"\ndomain = "tiny"\npaper_figure = 
             '"train.noise_std" = [0.0, 3e-4, 1e-3]\n' + SMOKE + '\n[tiers.smoke]\nseeds = [0, 1]\n'
             'grid = { "train.noise_std" = [0.0, 3e-4] }\n')
 MAX_FIGURE_BYTES = 400_000
-DOMAIN_CELLS = 18  # columns of the Knowl 5 table
+DOMAIN_CELLS = 19  # columns of the Knowl 5 table
 
 
 @pytest.fixture(scope="module")
@@ -94,10 +94,12 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
     (row,) = table_rows(text, "tiny", DOMAIN_CELLS)
     assert row[-1] == f"`{run.run_id}`" and row[-2] == "ok"
     assert float(row[8]) == pytest.approx(run.metrics["test/rollout_mse"], rel=1e-2)
-    assert float(row[12]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
-    assert "20 steps" in row[15] and "data tier smoke" in row[15]
+    cv = run.metrics["test/baseline_cv_rollout_mse"]
+    assert row[11] == f"{cv:.3g} ({run.metrics['test/rollout_mse'] / cv:.3g}x)"  # constant velocity, GNS / it
+    assert float(row[13]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
+    assert "20 steps" in row[16] and "data tier smoke" in row[16]
     assert "far below the paper's budget" in text and "20,000,000" in text
-    assert "rollouts of 10 steps" in row[15] and "`eval.rollout_steps` = 10 steps" in text
+    assert "rollouts of 10 steps" in row[16] and "`eval.rollout_steps` = 10 steps" in text
     check_figures(readme, {"time_vs_error.png", "rollout_best.png", "rollout_best.gif", "rollout_worst.png",
                            "rollout_worst.gif"})
 
@@ -138,7 +140,7 @@ def test_domains_aggregate_keeps_missing_domains(swept: dict[str, Path], tmp_pat
     (goop_row,) = table_rows(text, "GOOP", DOMAIN_CELLS)
     assert tiny[-2] == "ok" and goop_row[-2] == "**missing**" and goop_row[-1] == "—"
     assert goop_row[5] == "**missing**" and goop_row[6] == "2.91e-09" and goop_row[9] == "0.00189"
-    assert goop_row[11] == "0.0055"  # CConv (Knowl 8)
+    assert goop_row[11] == "—" and goop_row[12] == "0.0055"  # no run, so no baseline; CConv (Knowl 8)
     check_figures(readme, {"time_vs_error.png"})
 
     every = write_report("domains", "smoke", tmp_path / "all").read_text()
@@ -198,3 +200,19 @@ def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
     text = budget_statement([row("aaa", 0.5), row("bbb", 0.0)])
     assert "In 1 of 2 runs a health monitor stopped some rollouts early" in text and "`aaa`" in text
     assert "health monitor" not in budget_statement([row("bbb", 0.0)])
+
+
+def test_budget_statement_compares_with_constant_velocity() -> None:
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import budget_statement
+
+    planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
+
+    def row(rollout: float, constant_velocity: float) -> RunRow:
+        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": constant_velocity}
+        return RunRow(planned, tracking.RunRecord("r", planned.name, "FINISHED", 0, {"train.steps": "20"}, metrics))
+
+    assert "rollout MSE is 0.25x to 1.5x that of a constant-velocity" in budget_statement([row(1.0, 4.0),
+                                                                                           row(3.0, 2.0)])
+    assert "rollout MSE is 0.5x that of" in budget_statement([row(1.0, 2.0)])
+    assert "constant-velocity" not in budget_statement([row(1.0, 0.0)])  # no baseline logged
