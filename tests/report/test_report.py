@@ -208,11 +208,22 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
 
     planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
 
-    def row(rollout: float, constant_velocity: float) -> RunRow:
-        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": constant_velocity}
+    def row(rollout: float, constant_velocity: float, stopped: float = 0.0) -> RunRow:
+        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": constant_velocity,
+                   "test/rollout_stopped": stopped}
         return RunRow(planned, tracking.RunRecord("r", planned.name, "FINISHED", 0, {"train.steps": "20"}, metrics))
 
     assert "rollout MSE is 0.25x to 1.5x that of a constant-velocity" in budget_statement([row(1.0, 4.0),
                                                                                            row(3.0, 2.0)])
     assert "rollout MSE is 0.5x that of" in budget_statement([row(1.0, 2.0)])
     assert "constant-velocity" not in budget_statement([row(1.0, 0.0)])  # no baseline logged
+    # A stopped rollout's MSE covers fewer steps than the baseline's whole horizon: no comparison.
+    assert "constant-velocity" not in budget_statement([row(1.0, 4.0, stopped=0.2)])
+    text = budget_statement([row(1.0, 4.0, stopped=0.2), row(1.0, 2.0)])
+    assert "is 0.5x that of" in text and "runs with stopped rollouts left out" in text
+
+    from gns_bench.report.report import domain_row
+
+    goop = load_sweep(SWEEPS_DIR / "domains" / "goop.toml")
+    assert "| 4 (0.25x) |" in domain_row(goop, [row(1.0, 4.0)])
+    assert "| 4 (GNS rollouts stopped) |" in domain_row(goop, [row(1.0, 4.0, stopped=0.2)])
