@@ -143,6 +143,10 @@ def start_run(experiment: str, run_name: str, *, params: dict[str, Any] | None =
     mlflow = _mlflow()
     if run_id is not None:
         active = mlflow.start_run(run_id=run_id)
+        earlier = active.data.tags.get("error")
+        if earlier is not None:  # the stop of an earlier attempt is history now, not how this run ends
+            mlflow.set_tag("resumed_after", earlier)
+            mlflow.delete_tag("error")
     else:
         active = mlflow.start_run(experiment_id=experiment_id(experiment), run_name=run_name)
     handle = Run(mlflow, active)

@@ -128,6 +128,10 @@ def budget_statement(rows: list[RunRow]) -> str:
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
     if any(t != "paper" for t in tiers):
         text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
+    if any(r.tag("dataset_tier") for r in done):  # set by gns-bench's generators; imported datasets have none
+        text += ("The ground truth comes from gns-bench's own solvers (`datasets/<domain>.toml`), in the paper's "
+                 "format and units but not its trajectories: the paper's numbers are a reference on like scenes, "
+                 "not on the same test set. ")
     return text
 
 

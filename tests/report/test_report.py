@@ -99,6 +99,7 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
     assert float(row[13]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
     assert "20 steps" in row[16] and "data tier smoke" in row[16]
     assert "far below the paper's budget" in text and "20,000,000" in text
+    assert "The ground truth comes from gns-bench's own solvers" in text  # the tiny dataset is generated here
     assert "rollouts of 10 steps" in row[16] and "`eval.rollout_steps` = 10 steps" in text
     check_figures(readme, {"time_vs_error.png", "rollout_best.png", "rollout_best.gif", "rollout_worst.png",
                            "rollout_worst.gif"})
@@ -217,6 +218,7 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
                                                                                            row(3.0, 2.0)])
     assert "rollout MSE is 0.5x that of" in budget_statement([row(1.0, 2.0)])
     assert "constant-velocity" not in budget_statement([row(1.0, 0.0)])  # no baseline logged
+    assert "own solvers" not in budget_statement([row(1.0, 2.0)])  # no dataset tier: an imported dataset
     # A stopped rollout's MSE covers fewer steps than the baseline's whole horizon: no comparison.
     assert "constant-velocity" not in budget_statement([row(1.0, 4.0, stopped=0.2)])
     text = budget_statement([row(1.0, 4.0, stopped=0.2), row(1.0, 2.0)])

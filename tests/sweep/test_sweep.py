@@ -200,6 +200,7 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
     runs = runs_of(sweep.experiment)
     assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs)
     resumed = next(r for r in runs if r.info.run_id == killed.info.run_id)
+    assert "error" not in resumed.data.tags and "KeyboardInterrupt" in resumed.data.tags["resumed_after"]
     steps = [m.step for m in MlflowClient(tracking_uri=tracking.tracking_uri()).get_metric_history(
         resumed.info.run_id, "train_loss")]
     assert steps == [10, 20]  # steps 1-6 kept from the checkpoint, the rest resumed in the same run
