@@ -12,6 +12,7 @@ import logging
 import os
 import platform
 import subprocess
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -209,8 +210,6 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
     (with `params` over them), latest metrics and tags (with `tags` over them, and `shared_from` = its run
     id). Its artifacts stay with `source`, where `shared_from` leads. Returns the new run's id; a copy that
     fails half-way is ended FAILED, so it never looks complete."""
-    import time
-
     from mlflow.entities import Metric, Param
     from mlflow.tracking import MlflowClient
 

@@ -116,7 +116,8 @@ def budget_statement(rows: list[RunRow]) -> str:
         text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
                  f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
                  "their rollout MSE covers only the steps before the stop. ")
-    against_cv = [r.metric("rollout_mse") / r.metric("baseline_cv_rollout_mse") for r in _whole_rollouts(done)
+    whole = _whole_rollouts(done)
+    against_cv = [r.metric("rollout_mse") / r.metric("baseline_cv_rollout_mse") for r in whole
                   if r.metric("baseline_cv_rollout_mse") > 0]
     against_cv = [x for x in against_cv if math.isfinite(x)]
     if against_cv:
@@ -124,7 +125,7 @@ def budget_statement(rows: list[RunRow]) -> str:
         span = f"{low:.2g}x" + (f" to {high:.2g}x" if high > low else "")
         text += (f"On the same trajectories, the GNS's rollout MSE is {span} that of a constant-velocity "
                  "extrapolation (below 1x: the model beats it"
-                 + ("; runs with stopped rollouts left out" if len(against_cv) < len(done) else "") + "). ")
+                 + ("; runs with stopped rollouts left out" if len(whole) < len(done) else "") + "). ")
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
     if any(t != "paper" for t in tiers):
         text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
@@ -150,10 +151,11 @@ def domain_row(sweep: SweepSpec, rows: list[RunRow]) -> str:
     rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
     # the trivial baseline on the same trajectories: a model that does not beat it has learned little dynamics
     constant_velocity = mean_std([r.metric("baseline_cv_rollout_mse") for r in rows])[0]
-    whole = _whole_rollouts(rows)
-    baseline = "—" if not math.isfinite(constant_velocity) else (
-        f"{fmt(constant_velocity)} ({ratio(mean_std([r.metric('rollout_mse') for r in whole])[0], constant_velocity)})"
-        if whole else f"{fmt(constant_velocity)} (GNS rollouts stopped)")
+    whole = _whole_rollouts(rows)  # the ratio compares like with like: runs whose rollouts ran the whole horizon
+    whole_ratio = ratio(mean_std([r.metric("rollout_mse") for r in whole])[0],
+                        mean_std([r.metric("baseline_cv_rollout_mse") for r in whole])[0])
+    baseline = ("—" if not math.isfinite(constant_velocity) else
+                f"{fmt(constant_velocity)} ({whole_ratio if whole else 'GNS rollouts stopped'})")
     cells = [ref.name if ref else sweep.domain, ref.simulator if ref else "—", str(ref.dim) if ref else "—",
              f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
              fmt(one_step), fmt(ref.one_step_mse) if ref else "—", ratio(one_step, ref.one_step_mse if ref else None),
@@ -285,7 +287,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
         results = [r for r in load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
                    if r.predicted.shape[0]]
     if not results:
-        return lines + [f"Run `{row.run_id}` logged no rollouts.", ""]
+        return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""]
     errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
               for r in results]
     lines.append(f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{row.split}': "

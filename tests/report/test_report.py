@@ -229,3 +229,5 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
     goop = load_sweep(SWEEPS_DIR / "domains" / "goop.toml")
     assert "| 4 (0.25x) |" in domain_row(goop, [row(1.0, 4.0)])
     assert "| 4 (GNS rollouts stopped) |" in domain_row(goop, [row(1.0, 4.0, stopped=0.2)])
+    # the ratio takes both MSEs from the runs that rolled out whole; the value is every run's baseline
+    assert "| 5 (0.5x) |" in domain_row(goop, [row(1.0, 2.0), row(9.0, 8.0, stopped=0.2)])
