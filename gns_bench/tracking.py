@@ -103,6 +103,14 @@ def experiment_id(name: str) -> str:
         return experiment.experiment_id
 
 
+PARAM_BATCH = 90  # MLflow caps a batch at 100 params
+
+
+def as_param_strings(params: dict[str, Any]) -> dict[str, str]:
+    """How every param is stored: its str(), and "None" for None."""
+    return {k: "None" if v is None else str(v) for k, v in params.items()}
+
+
 class Run:
     """A thin handle over an active MLflow run."""
 
@@ -123,9 +131,9 @@ class Run:
             self._mlflow.log_metrics(clean, step=step)
 
     def log_params(self, params: dict[str, Any]) -> None:
-        items = [(k, "None" if v is None else str(v)) for k, v in params.items()]
-        for start in range(0, len(items), 90):  # MLflow caps a batch at 100 params
-            self._mlflow.log_params(dict(items[start:start + 90]))
+        items = list(as_param_strings(params).items())
+        for start in range(0, len(items), PARAM_BATCH):
+            self._mlflow.log_params(dict(items[start:start + PARAM_BATCH]))
 
     def set_tags(self, tags: dict[str, Any]) -> None:
         self._mlflow.set_tags({k: str(v) for k, v in tags.items()})
@@ -220,11 +228,11 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
     run_id = client.create_run(experiment_id(experiment), run_name=run_name, tags=all_tags).info.run_id
     try:
         now = int(time.time() * 1000)
-        merged = {**source.params, **{k: "None" if v is None else str(v) for k, v in params.items()}}
+        merged = {**source.params, **as_param_strings(params)}
         entities = [Param(k, v) for k, v in merged.items()] + [Metric(k, v, now, 0)
                                                                  for k, v in source.metrics.items()]
-        for start in range(0, len(entities), 90):  # MLflow caps a batch at 100 params
-            chunk = entities[start:start + 90]
+        for start in range(0, len(entities), PARAM_BATCH):
+            chunk = entities[start:start + PARAM_BATCH]
             client.log_batch(run_id, params=[e for e in chunk if isinstance(e, Param)],
                              metrics=[e for e in chunk if isinstance(e, Metric)])
     except BaseException as exc:

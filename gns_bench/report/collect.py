@@ -46,12 +46,6 @@ class RunRow:
         return self.tag("shared_from") or self.run_id
 
     @property
-    def shared_from(self) -> str:
-        """`<sweep>/<run> (<run id>)` of the run this one is a copy of; "" when it trained itself."""
-        source = self.tag("shared_from")
-        return f"{self.tag('shared_from_run', '?')} (`{source}`)" if source else ""
-
-    @property
     def split(self) -> str:
         return self.record.params.get("eval.split", "test") if self.record else "test"
 

@@ -55,8 +55,9 @@ def run_id_cell(row: RunRow) -> str:
     """The run id, with its status when it did not finish, and the run it copies when another sweep trained it."""
     if not row.run_id:
         return "—"
+    source = row.tag("shared_from")
     return (f"`{row.run_id}`" + ("" if row.ok else f" ({row.status})")
-            + (f", shared from {row.shared_from}" if row.shared_from else ""))
+            + (f", shared from {row.tag('shared_from_run', '?')} (`{source}`)" if source else ""))
 
 
 def _run_ids(rows: list[RunRow]) -> str:
