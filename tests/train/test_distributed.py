@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import psutil
 import torch
 
 from gns_bench.config import load_config
@@ -17,12 +20,12 @@ MODEL = ["model.message_passing_steps=2", "model.latent_size=32", "model.mlp_hid
 
 
 def test_two_processes_equal_one_with_twice_the_batch(tiny_dataset: Path, tmp_path: Path) -> None:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1"}
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
                "-m", "gns_bench.cli", "train", str(tiny_dataset), "--out", str(tmp_path / "ddp"), "--no-eval",
                "--experiment", "ddp-test", *MODEL, "train.batch_size=1"]
-    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
+    returncode, stderr = _run_or_dump_stacks(command, env, timeout_s=300)
+    assert returncode == 0, stderr[-6000:]
     single = train(load_config(None, MODEL + ["train.batch_size=2"]), tiny_dataset, tmp_path / "one",
                    progress=False)
     ddp_state = torch.load(tmp_path / "ddp" / "checkpoint.pt", weights_only=False)
@@ -35,3 +38,21 @@ def test_two_processes_equal_one_with_twice_the_batch(tiny_dataset: Path, tmp_pa
     init_state = torch.load(initial.checkpoint, weights_only=False)
     moved = max(float((v - ddp_state["model"][k]).abs().max()) for k, v in init_state["model"].items())
     assert moved > 1e-3, "training must have moved the parameters for the comparison to mean anything"
+
+
+def _run_or_dump_stacks(command: list[str], env: dict[str, str], timeout_s: float) -> tuple[int | None, str]:
+    """Run `command`; if it hangs, SIGABRT every process under it so that faulthandler prints each rank's
+    Python stacks into stderr, and return that (returncode None) for the failure message."""
+    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _, stderr = process.communicate(timeout=timeout_s)
+        return process.returncode, stderr
+    except subprocess.TimeoutExpired:
+        ranks = psutil.Process(process.pid).children(recursive=True)  # torchrun starts them in new sessions
+        for rank in ranks:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                rank.send_signal(signal.SIGABRT)
+        psutil.wait_procs(ranks, timeout=30)
+        process.kill()
+        _, stderr = process.communicate()
+        return None, f"hung for {timeout_s:.0f} s; stacks at SIGABRT:\n{stderr}"
