@@ -55,7 +55,7 @@ def report(session: nox.Session) -> None:
     """nox -s report -- SWEEP [--tier T]: the sweep's report from MLflow into reports/."""
     install(session)
     if not session.posargs:
-        session.error("usage: nox -s report -- SWEEP [--tier smoke|small|paper]")
+        session.error("usage: nox -s report -- SWEEP|domains|stability|all [--tier smoke|small|paper]")
     session.run("gns-bench", "report", *session.posargs)
 
 

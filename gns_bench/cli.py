@@ -204,16 +204,19 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
-                                 "'domains' for the table across all domain sweeps, or 'stability' for the "
-                                 "stress sweeps")
+                                 "'domains' for the table across all domain sweeps, 'stability' for the "
+                                 "stress sweeps, or 'all': every sweep with runs at the tier, then those two")
     p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
     p.add_argument("--reports-root", type=Path, default=Path("reports"))
 
 
 def cmd_report(args: argparse.Namespace) -> None:
-    from gns_bench.report import write_report
+    from gns_bench.report import write_all_reports, write_report
 
-    print(write_report(args.sweep, args.tier, args.reports_root))
+    if args.sweep == "all":
+        print("\n".join(map(str, write_all_reports(args.tier, args.reports_root))))
+    else:
+        print(write_report(args.sweep, args.tier, args.reports_root))
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:

@@ -28,7 +28,7 @@ from gns_bench.report.collect import (
     resolve_sweep,
 )
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference, paper_training_steps
-from gns_bench.sweep.spec import SweepSpec
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
 
 MISSING = "**missing**"
 
@@ -177,7 +177,7 @@ def domain_table(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[str]:
 
 
 def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[str]:
-    lines = ["## Rollout time per step (Knowl 9)", "",
+    lines = ["## Rollout time per step (App. C.6; Knowl 9)", "",
              "| domain | ours (s/step) | hardware | paper GNS (s/step, V100) | paper solver (s/step, CPU) |",
              "|---|---|---|---|---|"]
     for sweep, rows in collected:
@@ -324,7 +324,7 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path) -> Path:
 
         lines += sweep_section(sweep, rows, out_dir)
     elif kind == "domain":
-        lines += ["## Against the paper (Knowl 5)", "", *domain_table([(sweep, rows)]), ""]
+        lines += ["## Against the paper (App. C.4; Knowl 5)", "", *domain_table([(sweep, rows)]), ""]
     else:
         lines += ablation_section(sweep, rows, out_dir)
     lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir),
@@ -337,9 +337,11 @@ def write_domains_report(sweeps: list[SweepSpec], tier: str, out_dir: Path) -> P
     out_dir.mkdir(parents=True, exist_ok=True)
     collected = [(s, collect(s, tier)) for s in sweeps]
     every = [r for _, rows in collected for r in rows]
-    lines = [f"# Domains ({tier} tier)", "", "The paper's Knowl 5 table with our numbers beside it: mean over seeds "
-             "of the test-split metrics, MSEs absolute (not x1e-9 / x1e-3); ratio = ours / paper. CConv: the "
-             "paper's best CConv baseline (Knowl 8, approximate). Each row states its budget. Per-domain runs "
+    lines = [f"# Domains ({tier} tier)", "",
+             "The paper's results on its 16 domains (App. C.4; Knowl 5 of the summary in `../shared/paper/`) "
+             "with our numbers beside them: mean over seeds of the test-split metrics, MSEs absolute (not "
+             "x1e-9 / x1e-3); ratio = ours / paper. CConv: the paper's best CConv baseline (Sec. 5.5 and "
+             "App. D.1; Knowl 8, approximate). Each row states its budget. Per-domain runs "
              f"and rollouts: `reports/domain-<id>/{tier}/` (`gns-bench report domain-<id> --tier {tier}`).", "",
              budget_statement(every), "", *domain_table(collected), "", *inference_section(collected), "",
              *time_section(every, out_dir, label=lambda r: r.planned.sweep.removeprefix("domain-"))]
@@ -350,7 +352,7 @@ def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Pa
     """Write `reports_root/<sweep name>/<tier>/README.md` (+ PNG/GIF) from MLflow; returns the README path.
 
     `sweep` is a sweep file, a sweep name (`ablation-noise_std`, `domain-goop`), `domains` for the table
-    across all domain sweeps, or `stability` for the stress sweeps' report.
+    across all domain sweeps, or `stability` for the stress sweeps' report (`write_all_reports` writes them all).
     """
     reports_root = Path(reports_root)
     if str(sweep) == "domains":
@@ -361,3 +363,19 @@ def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Pa
         return write_stability_report(tier, reports_root / "stability" / tier)
     spec = resolve_sweep(sweep)
     return write_sweep_report(spec, tier, reports_root / spec.name / tier)
+
+
+def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
+                      sweeps_dir: Path = SWEEPS_DIR) -> list[Path]:
+    """The report of every sweep in `sweeps_dir` that has runs at `tier`, then the domain table and the
+    stability report (those two always, gaps shown as missing). Returns the README paths in that order."""
+    written = []
+    for path in discover_sweeps(sweeps_dir):
+        spec = load_sweep(path)
+        if any(row.record for row in collect(spec, tier)):
+            written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier))
+    from gns_bench.report.stability import write_stability_report
+
+    written.append(write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier))
+    written.append(write_stability_report(tier, reports_root / "stability" / tier))
+    return written

@@ -212,7 +212,8 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
     sweeps = stress_sweeps() if sweeps is None else sweeps
     collected = [(s, collect(s, tier)) for s in sweeps]
     lines = [f"# Stability and generalisation ({tier} tier)", "",
-             "The paper's stability claims (Knowl 7) and failure modes (Knowl 10), each a stress sweep in "
+             "The paper's stability and generalisation claims (Sec. 5.3; Knowl 7 of the summary in "
+             "`../shared/paper/`) and failure modes (App. C.7; Knowl 10), each a stress sweep in "
              "`sweeps/stress/` run with `nox -s <sweep> -- <tier>`. Tests: `horizon` (rollouts longer than "
              "training), `precision` (fp64 / fp32 / bf16), `perturbation` (growth of a small initial "
              "perturbation, model against solver), `scale` (scenes with more particles in larger arenas); "

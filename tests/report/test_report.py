@@ -17,7 +17,7 @@ from PIL import Image
 
 from gns_bench import tracking
 from gns_bench.cli import main
-from gns_bench.report import write_report
+from gns_bench.report import write_all_reports, write_report
 from gns_bench.report.collect import collect, domain_sweeps
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
@@ -159,6 +159,17 @@ def test_cli_report_and_unknown_sweep(swept: dict[str, Path], tmp_path: Path) ->
         write_report("ablation-no_such_axis", "smoke", tmp_path)
     assert tracking.search_sweep_runs("sweep:never-ran") == []
     assert collect(load_sweep(swept["domain"]), "small")[0].status == "missing"
+
+
+def test_all_reports_cover_the_sweeps_with_runs(swept: dict[str, Path], tmp_path: Path) -> None:
+    written = write_all_reports("smoke", tmp_path, sweeps_dir=swept["root"] / "sweeps")
+    assert [p.relative_to(tmp_path).parts[0] for p in written] == [
+        "ablation-noise_std", "domain-tiny", "domains", "stability"]
+    assert all(p.name == "README.md" and p.stat().st_size > 0 for p in written)
+    # At a tier with no runs only the two overviews are written, their rows all marked missing.
+    small = tmp_path / "small"
+    assert main(["report", "all", "--tier", "small", "--reports-root", str(small)]) == 0
+    assert sorted(p.name for p in small.iterdir()) == ["domains", "stability"]
 
 
 def test_pareto_front_and_references() -> None:
