@@ -203,6 +203,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         raise
     finally:
         bar.close()
+        del model  # a DDP wrapper must go before its process group (ProcessGroup.close), even on Ctrl-C
     checkpoint(step)
     group.close()
     elapsed = time.perf_counter() - started

@@ -40,6 +40,38 @@ def test_two_processes_equal_one_with_twice_the_batch(tiny_dataset: Path, tmp_pa
     assert moved > 1e-3, "training must have moved the parameters for the comparison to mean anything"
 
 
+TEARDOWN = """
+import sys
+import torch
+from gns_bench.train import distributed
+
+group = distributed.from_environment(torch.device("cpu"))
+model = group.wrap(torch.nn.Linear(3, 2))
+model(torch.ones(1, 3)).sum().backward()
+try:
+    group.close()
+except RuntimeError as error:
+    assert "still alive" in str(error), error
+else:
+    raise SystemExit("close() accepted a live DDP wrapper")
+del model
+group.close()
+assert not torch.distributed.is_initialized()
+print("closed rank", group.rank, file=sys.stderr)
+"""
+
+
+def test_close_refuses_while_a_ddp_wrapper_is_alive(tmp_path: Path) -> None:
+    """A DDP reducer freed after its gloo group deadlocks the rank; close() must refuse that order."""
+    script = tmp_path / "teardown.py"
+    script.write_text(TEARDOWN)
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", str(script)]
+    returncode, stderr = _run_or_dump_stacks(command, {**os.environ, "OMP_NUM_THREADS": "1",
+                                                       "PYTHONFAULTHANDLER": "1"}, timeout_s=120)
+    assert returncode == 0, stderr[-6000:]
+    assert stderr.count("closed rank") == 2, stderr[-3000:]
+
+
 def _run_or_dump_stacks(command: list[str], env: dict[str, str], timeout_s: float) -> tuple[int | None, str]:
     """Run `command`; if it hangs, SIGABRT every process under it so that faulthandler prints each rank's
     Python stacks into stderr, and return that (returncode None) for the failure message."""
