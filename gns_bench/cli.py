@@ -175,6 +175,11 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="train every run here, even one another sweep already trained with the same config and "
                         "data (by default it is recorded from that run: an ablation's default point is the "
                         "domain sweep's run)")
+    p.add_argument("--only", action="append", default=[], metavar="PATTERN",
+                   help="run only the runs whose names match this shell pattern (repeatable), e.g. "
+                        "'message_passing_steps=5-*'; --dry-run lists the names")
+    p.add_argument("--no-train", action="store_true",
+                   help="train nothing: only record the runs other sweeps already trained (shared)")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--runs-root", type=Path, default=Path("runs"))
 
@@ -185,11 +190,13 @@ def cmd_sweep(args: argparse.Namespace) -> None:
 
     sweep = load_sweep(args.file)
     if args.dry_run:
-        runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share)
+        runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share,
+                                  only=args.only)
         print(format_plan(sweep, args.tier, runs, status))
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
-                         launcher=args.launcher, cluster=args.cluster, share=not args.no_share)
+                         launcher=args.launcher, cluster=args.cluster, share=not args.no_share, only=args.only,
+                         train=not args.no_train)
     counts = {s: sum(o.status == s for o in outcomes) for s in ("FINISHED", "SKIPPED", "SHARED", "FAILED")}
     print(f"sweep {sweep.name}: {counts['FINISHED']} finished, {counts['SKIPPED']} skipped (already finished), "
           f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed; "

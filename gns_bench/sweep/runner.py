@@ -11,10 +11,11 @@ sweep, and the next invocation resumes it from its checkpoint.
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import json
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -126,12 +127,25 @@ def share_run(run: PlannedRun, key: str, source: tracking.RunRecord) -> RunOutco
     return RunOutcome(run.name, "SHARED", run_id, metrics=source.metrics)
 
 
+def select_runs(sweep: SweepSpec, runs: list[PlannedRun], only: Sequence[str]) -> list[PlannedRun]:
+    """The runs whose names match any of the `only` shell patterns (all runs when there are none)."""
+    if not only:
+        return runs
+    chosen = [r for r in runs if any(fnmatch.fnmatchcase(r.name, pattern) for pattern in only)]
+    if not chosen:
+        raise ValueError(f"sweep {sweep.name}: no run matches --only {' '.join(only)}; its runs are "
+                         f"{', '.join(r.name for r in runs)}")
+    return chosen
+
+
 def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = True, progress: bool = True,
-            share: bool = True) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
-    """Plan the runs and ensure their datasets. Returns the runs, each run's status before running
-    ("finished", "to run", "shared with <sweep>/<run>", "dataset missing"), and the shared ones' (key,
-    trained run) by run name: those another sweep trained with the same key (none when `share` is off)."""
-    runs = sweep.plan(tier)
+            share: bool = True, only: Sequence[str] = ()
+            ) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
+    """Plan the runs (those matching `only`, if given) and ensure their datasets. Returns the runs, each
+    run's status before running ("finished", "to run", "shared with <sweep>/<run>", "dataset missing"),
+    and the shared ones' (key, trained run) by run name: those another sweep trained with the same key
+    (none when `share` is off)."""
+    runs = select_runs(sweep, sweep.plan(tier), only)
     done = finished_keys(sweep.experiment)
     trained: dict[str, tracking.RunRecord] = {}
     for domain in {r.domain for r in runs} if share else ():
@@ -170,13 +184,18 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
               launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
-              echo: Callable[[str], None] = print) -> list[RunOutcome]:
-    """Run what the sweep lacks at this tier. `share=False` trains runs another sweep already trained."""
-    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share)
+              only: Sequence[str] = (), train: bool = True, echo: Callable[[str], None] = print
+              ) -> list[RunOutcome]:
+    """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
+    or all. `share=False` trains runs another sweep already trained; `train=False` only records those."""
+    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only)
     pending = [r for r in runs if status[r.name] == "to run"]
     outcomes = [RunOutcome(r.name, "SKIPPED") for r in runs if status[r.name] == "finished"]
-    echo(f"sweep {sweep.name} (tier {tier}): {len(runs)} runs, {len(outcomes)} already finished, "
-         f"{len(shared)} shared with other sweeps, {len(pending)} to run")
+    selected = f" (--only {' '.join(only)})" if only else ""
+    echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished, "
+         f"{len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
+    if not train:
+        pending = []
     for run in runs:
         if run.name in shared:
             key, source = shared[run.name]

@@ -140,6 +140,33 @@ def test_a_run_another_sweep_trained_is_shared_not_retrained(sweeps: Path, tmp_p
     assert again == {"noise_std=0.0-seed0": "SHARED", "noise_std=0.0003-seed0": "SHARED"}
 
 
+def test_only_and_no_train_choose_what_a_session_runs(sweeps: Path, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture) -> None:
+    """A session with an hour trains one chosen point; `--no-train` records shared runs and trains none."""
+    own = GRID.replace("learning_rate = 1e-3", "learning_rate = 3e-3")  # keys no other test trains
+    base_path, abl_path = sweeps / "tests" / "obase.toml", sweeps / "tests" / "oabl.toml"
+    base_path.write_text(own.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[2]"))
+    abl_path.write_text(own)
+    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs")]
+    abl = load_sweep(abl_path)
+    assert main(["sweep", str(abl_path), "--only", "nothing-*", *roots]) == 2
+    assert "no run matches --only nothing-*" in capsys.readouterr().err
+    assert runs_of(abl.experiment) == []
+
+    assert main(["sweep", str(abl_path), "--only", "message_passing_steps=1,noise_std=0.0-*", *roots]) == 0
+    assert [r.info.run_name for r in runs_of(abl.experiment)] == ["message_passing_steps=1,noise_std=0.0-seed0"]
+
+    assert main(["sweep", str(base_path), *roots]) == 0
+    assert main(["sweep", str(abl_path), "--no-train", *roots]) == 0
+    assert "2 to run, not trained" in capsys.readouterr().out
+    statuses = {r.info.run_name: ("shared_from" in r.data.tags) for r in runs_of(abl.experiment)}
+    assert statuses == {"message_passing_steps=1,noise_std=0.0-seed0": False,
+                        "message_passing_steps=2,noise_std=0.0003-seed0": True}
+    _, status, _ = prepare(abl, "smoke", tmp_path / "data", only=["*noise_std=0.0-*"])
+    assert status == {"message_passing_steps=1,noise_std=0.0-seed0": "finished",
+                      "message_passing_steps=2,noise_std=0.0-seed0": "to run"}
+
+
 def test_dry_run_prints_the_table(sweeps: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = sweeps / "tests" / "dry.toml"
     path.write_text(GRID)
