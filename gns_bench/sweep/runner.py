@@ -40,15 +40,27 @@ KEY_VERSION = 2  # 1: every config field in the key (before 2026-11-22)
 _MISSING = object()
 
 
-def run_key(run: PlannedRun, dataset_hash: str) -> str:
+def run_key(run: PlannedRun, dataset_hash: str, dataset_radius: float | None = None) -> str:
     """Only the config values that differ from `Config()`'s enter the key, so adding a config field with a
     default leaves every existing run's key (and its FINISHED status) as it was. Changing an existing
-    default changes what the keys that omit it mean: bump `KEY_VERSION` with it."""
+    default changes what the keys that omit it mean: bump `KEY_VERSION` with it.
+
+    A connectivity radius equal to the dataset's default (`dataset_radius`) is keyed as the default, which
+    resolves to it: the radius ablation's R = 0.015 point is the GOOP domain run."""
     defaults = Config().to_dict()
+    resolved = run.config.to_dict()
+    if dataset_radius is not None and resolved["model"].get("connectivity_radius") == dataset_radius:
+        resolved["model"]["connectivity_radius"] = defaults["model"]["connectivity_radius"]
     config = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
-              for section, values in run.config.to_dict().items()}
+              for section, values in resolved.items()}
     payload = {"config": config, "domain": run.domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
+
+
+def dataset_run_key(run: PlannedRun, dataset_dir: Path) -> str:
+    """`run_key` of a run on the dataset in `dataset_dir` (its content hash and default radius)."""
+    metadata = read_metadata(dataset_dir)
+    return run_key(run, metadata.content_hash or "", metadata.default_connectivity_radius)
 
 
 def finished_keys(experiment: str) -> dict[str, str]:
@@ -102,7 +114,7 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     if tracking_uri:
         tracking.use_tracking_uri(tracking_uri)
     dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
-    key = run_key(run, read_metadata(dataset).content_hash or "")
+    key = dataset_run_key(run, dataset)
     out_dir = run_dir(runs_root, run)
     resume = _resumable(out_dir)
     if not resume and out_dir.exists():
@@ -159,7 +171,7 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
         if not (path / "metadata.json").exists():
             status[run.name] = "dataset missing"
             continue
-        key = run_key(run, read_metadata(path).content_hash or "")
+        key = dataset_run_key(run, path)
         if key in done:
             status[run.name] = "finished"
         elif key in trained:

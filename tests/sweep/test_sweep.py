@@ -11,7 +11,7 @@ from mlflow.tracking import MlflowClient
 
 from gns_bench import tracking
 from gns_bench.cli import main
-from gns_bench.sweep.runner import prepare, run_sweep
+from gns_bench.sweep.runner import prepare, run_key, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
 GRID = '''description = "2x2 test grid"
@@ -305,6 +305,21 @@ def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch
 
     monkeypatch.setattr(Config, "to_dict", older_config)
     assert run_key(run, "abc") == key
+
+
+def test_run_key_resolves_a_radius_equal_to_the_datasets() -> None:
+    """The radius ablation's point at the dataset's default R is the domain run, which leaves R unset."""
+    import dataclasses
+
+    plan = {r.name: r for r in load_sweep(SWEEPS_DIR / "ablations" / "connectivity_radius.toml").plan("small")}
+    domain_run = next(iter(load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("small")))
+    at_default, wider = plan["connectivity_radius=0.015-seed0"], plan["connectivity_radius=0.02-seed0"]
+    unset = dataclasses.replace(at_default, config=dataclasses.replace(
+        at_default.config, model=dataclasses.replace(at_default.config.model, connectivity_radius=None)))
+    assert run_key(at_default, "abc", 0.015) == run_key(unset, "abc", 0.015) == run_key(domain_run, "abc", 0.015)
+    assert run_key(wider, "abc", 0.015) != run_key(domain_run, "abc", 0.015)
+    assert run_key(at_default, "abc", 0.02) != run_key(domain_run, "abc", 0.02)  # another dataset's default
+    assert run_key(at_default, "abc") != run_key(domain_run, "abc")  # no dataset radius known: explicit
 
 
 def test_experiment_created_by_a_parallel_run_is_reused(monkeypatch: pytest.MonkeyPatch) -> None:
