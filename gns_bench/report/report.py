@@ -87,6 +87,11 @@ def budget(rows: list[RunRow]) -> str:
                                                                 else "") for r in done})
     if precisions != ["fp32"]:
         models = [f"{m}, {'/'.join(precisions)}" for m in models]
+    # Where the schedule stood at the last step: short runs on the paper's 5M-step decay end at ~1e-4, and
+    # their last weights are a noisy snapshot (sweeps/tiers.toml, small tier)
+    final_rates = sorted({fmt(r.metric("learning_rate")) for r in done if math.isfinite(r.metric("learning_rate"))})
+    if final_rates:
+        models = [f"{m}, final learning rate {'/'.join(final_rates)}" for m in models]
     return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
             f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
 

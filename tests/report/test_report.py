@@ -98,6 +98,7 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
     assert row[11] == f"{cv:.3g} ({run.metrics['test/rollout_mse'] / cv:.3g}x)"  # constant velocity, GNS / it
     assert float(row[13]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
     assert "20 steps" in row[16] and "data tier smoke" in row[16]
+    assert f"final learning rate {run.metrics['learning_rate']:.3g}" in row[16]  # where the schedule stood
     assert "far below the paper's budget" in text and "20,000,000" in text
     assert "The ground truth comes from gns-bench's own solvers" in text  # the tiny dataset is generated here
     assert "rollouts of 10 steps" in row[16] and "`eval.rollout_steps` = 10 steps" in text
