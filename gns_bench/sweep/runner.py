@@ -94,8 +94,10 @@ def run_dir(runs_root: Path, run: PlannedRun) -> Path:
     return runs_root / run.sweep / run.tier / run.name
 
 
-def _resumable(out_dir: Path) -> bool:
-    """An earlier attempt left a checkpoint and an MLflow run that still exists (KILLED, FAILED, RUNNING)."""
+def _resumable(out_dir: Path, key: str) -> bool:
+    """An earlier attempt at this run left a checkpoint and an MLflow run that still exists (KILLED, FAILED,
+    RUNNING) under the same key. A different key means the plan changed under it (a tier's budget, a new
+    dataset): that attempt is another run, and this one starts afresh."""
     from mlflow.tracking import MlflowClient
 
     id_file = out_dir / RUN_ID_FILE
@@ -105,7 +107,8 @@ def _resumable(out_dir: Path) -> bool:
         run = MlflowClient(tracking_uri=tracking.tracking_uri()).get_run(id_file.read_text().strip())
     except Exception:  # noqa: BLE001 - a run deleted for good or from another store
         return False
-    return run.info.lifecycle_stage == "active" and run.info.status != "FINISHED"
+    return (run.info.lifecycle_stage == "active" and run.info.status != "FINISHED"
+            and run.data.tags.get("run_key") == key)
 
 
 def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri: str | None = None,
@@ -116,7 +119,7 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
     key = dataset_run_key(run, dataset)
     out_dir = run_dir(runs_root, run)
-    resume = _resumable(out_dir)
+    resume = _resumable(out_dir, key)
     if not resume and out_dir.exists():
         shutil.rmtree(out_dir)  # a finished run whose MLflow record was deleted, or a foreign leftover
     try:

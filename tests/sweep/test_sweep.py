@@ -233,6 +233,32 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
     assert steps == [10, 20]  # steps 1-6 kept from the checkpoint, the rest resumed in the same run
 
 
+def test_a_run_whose_plan_changed_starts_afresh(sweeps: Path, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stopped run is resumed only under the same key: once its tier's budget changes it is another run."""
+    path = sweeps / "tests" / "replanned.toml"
+    text = GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[1]")
+    path.write_text(text)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
+    from gns_bench.train import loop
+
+    real = loop.training_loss
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop, "training_loss", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(load_sweep(path), "smoke", **roots)
+    monkeypatch.setattr(loop, "training_loss", real)
+    (killed,) = runs_of("sweep:test-replanned")
+    path.write_text(text.replace("learning_rate = 1e-3", "learning_rate = 1e-3\nlearning_rate_decay_steps = 1e3"))
+    (outcome,) = run_sweep(load_sweep(path), "smoke", **roots)  # resuming would fail: train settings differ
+    assert outcome.status == "FINISHED" and outcome.run_id != killed.info.run_id, outcome.error
+    statuses = {r.info.run_id: r.info.status for r in runs_of("sweep:test-replanned")}
+    assert statuses == {killed.info.run_id: "KILLED", outcome.run_id: "FINISHED"}
+
+
 def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
     path = sweeps / "tests" / "submitit.toml"
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
