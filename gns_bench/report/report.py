@@ -89,7 +89,7 @@ def budget(rows: list[RunRow]) -> str:
         models = [f"{m}, {'/'.join(precisions)}" for m in models]
     # Where the schedule stood at the last step: short runs on the paper's 5M-step decay end at ~1e-4, and
     # their last weights are a noisy snapshot (sweeps/tiers.toml, small tier)
-    final_rates = sorted({fmt(r.metric("learning_rate")) for r in done if math.isfinite(r.metric("learning_rate"))})
+    final_rates = sorted({fmt(lr) for lr in (r.metric("learning_rate") for r in done) if math.isfinite(lr)})
     if final_rates:
         models = [f"{m}, final learning rate {'/'.join(final_rates)}" for m in models]
     return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
@@ -317,9 +317,10 @@ def _write(out_dir: Path, lines: list[str]) -> Path:
     return path
 
 
-def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path) -> Path:
+def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[RunRow] | None = None) -> Path:
+    """The sweep's report from `rows` (its collected runs; collected here when not given)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    rows = collect(sweep, tier)
+    rows = collect(sweep, tier) if rows is None else rows
     kind = "stress" if sweep.name.startswith("stress-") else "domain" if not sweep.axes else "ablation"
     lines = [f"# {sweep.name} ({tier} tier)", "", f"{sweep.description}. Domain `{sweep.domain}`; paper: "
              f"{sweep.paper_figure or '—'}. MLflow experiment `{sweep.experiment}`; {len(rows)} planned runs, "
@@ -377,8 +378,9 @@ def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
     written = []
     for path in discover_sweeps(sweeps_dir):
         spec = load_sweep(path)
-        if any(row.record for row in collect(spec, tier)):
-            written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier))
+        rows = collect(spec, tier)
+        if any(row.record for row in rows):
+            written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
     from gns_bench.report.stability import write_stability_report
 
     written.append(write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier))
