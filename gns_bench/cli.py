@@ -180,6 +180,9 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                         "'message_passing_steps=5-*'; --dry-run lists the names")
     p.add_argument("--no-train", action="store_true",
                    help="train nothing: only record the runs other sweeps already trained (shared)")
+    p.add_argument("--reevaluate", nargs="?", const="the evaluation changed", default=None, metavar="REASON",
+                   help="first evaluate the finished runs again from their final checkpoints, into their own MLflow "
+                        "runs (tag 'reevaluated' records REASON), and copy shared runs afresh; training is untouched")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--runs-root", type=Path, default=Path("runs"))
 
@@ -196,9 +199,12 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                          launcher=args.launcher, cluster=args.cluster, share=not args.no_share, only=args.only,
-                         train=not args.no_train)
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("FINISHED", "SKIPPED", "SHARED", "FAILED")}
-    print(f"sweep {sweep.name}: {counts['FINISHED']} finished, {counts['SKIPPED']} skipped (already finished), "
+                         train=not args.no_train, reevaluate_reason=args.reevaluate)
+    counts = {s: sum(o.status == s for o in outcomes)
+              for s in ("FINISHED", "REEVALUATED", "SKIPPED", "SHARED", "FAILED")}
+    print(f"sweep {sweep.name}: {counts['FINISHED']} finished, "
+          + (f"{counts['REEVALUATED']} evaluated again, " if args.reevaluate is not None else "")
+          + f"{counts['SKIPPED']} skipped (already finished), "
           f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed; "
           f"MLflow experiment '{sweep.experiment}'")
     for outcome in outcomes:

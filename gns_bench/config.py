@@ -87,6 +87,9 @@ class TrainConfig:
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")
 
 
+MonitorName = Literal["non_finite", "out_of_bounds", "energy_blowup", "density_collapse"]
+
+
 @dataclass
 class EvalConfig:
     """Evaluation (paper Sec. 4.4): one-step and rollout MSE on a held-out split."""
@@ -103,7 +106,11 @@ class EvalConfig:
     ot_exact_max_particles: int = 4000  # exact EMD up to this many particles, Sinkhorn divergence beyond
     sinkhorn_reg: float = 1e-4  # entropic regularisation, squared position units (blur ~ sqrt = 0.01 ~ R in 2D)
     # Rollouts: health monitors (always on unless switched off), Verlet lists, reduced precision.
-    monitors: bool = True  # stop a rollout on NaN/inf, escape from the bounds, energy blow-up, density collapse
+    monitors: bool = True  # watch for NaN/inf, escape from the bounds, energy blow-up, density collapse
+    # The monitors that end a rollout; the others only flag it (tag `<split>/rollouts_flagged`) and it runs on.
+    # The paper scores whole rollouts, so a particle through a wall or a collapsed patch is error its MSE
+    # counts; NaN and runaway energy leave nothing worth scoring.
+    stop_on: list[MonitorName] = field(default_factory=lambda: ["non_finite", "energy_blowup"])
     neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
     precision: Literal["fp32", "bf16", "fp64"] = "fp32"  # bf16: autocast the network; fp64: a reference
 

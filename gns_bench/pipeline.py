@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,7 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
     paths = [save_rollouts(evaluation, out_dir / f"{prefix}_rollouts.npz")]
     tripped = {f"{i:05d}": r.stopped_by for i, r in enumerate(evaluation.rollouts)
                if isinstance(r.stopped_by, MonitorTripped)}
+    (out_dir / f"{prefix}_monitor_states.npz").unlink(missing_ok=True)  # an earlier evaluation's
     if tripped:  # the state each monitor stopped on, with what it saw
         np.savez_compressed(out_dir / f"{prefix}_monitor_states.npz",
                             **{f"{key}/position": stop.position for key, stop in tripped.items()},
@@ -67,8 +69,13 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
     return paths
 
 
+# Tags an evaluation may set; a re-evaluation removes the ones it does not set again
+EVALUATION_TAGS = ("rollouts_stopped", "rollouts_flagged", "ot_method")
+
+
 def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
                     split: str) -> None:
+    run.delete_tags([f"{split}/{key}" for key in EVALUATION_TAGS if key not in evaluation.tags])
     run.log_metrics({f"{split}/{key}": value for key, value in evaluation.metrics.items()})
     run.set_tags({f"{split}/{key}": value for key, value in evaluation.tags.items()})
     for path in write_evaluation_artifacts(evaluation, out_dir, bounds, split):
@@ -203,3 +210,31 @@ def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: E
         _log_evaluation(run, evaluation, out_dir, data_meta.bounds, eval_config.split)
         return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
 
+
+
+def reevaluate_run(run_id: str, dataset_dir: str | Path, out_dir: str | Path, eval_config: EvalConfig, *,
+                   reason: str, device: str = "auto", progress: bool = True) -> RunSummary:
+    """Evaluate a trained run's final checkpoint (`out_dir/checkpoint.pt`) again, into that same MLflow run,
+    when the evaluation changed after it finished. Its metrics take the new values (MLflow keeps the old
+    ones in each metric's history), evaluation tags it no longer earns are removed, its artifacts are
+    replaced, and tag `reevaluated` says when and why. A re-evaluation that fails leaves the run FAILED, so
+    the sweep resumes it (from the final checkpoint: evaluation only) rather than trusting half its metrics."""
+    out_dir = Path(out_dir)
+    checkpoint = out_dir / "checkpoint.pt"
+    if not checkpoint.exists():
+        raise FileNotFoundError(f"{checkpoint}: run {run_id} has no checkpoint here to evaluate again")
+    torch_device = str(resolve_device(device))
+    simulator, _, meta = load_simulator(checkpoint, torch_device)
+    split = eval_config.split
+    with tracking.start_run("", "", run_id=run_id) as run:
+        logged = set(run.run.data.params)
+        run.log_params({k: v for k, v in Config(eval=eval_config).flat().items()
+                        if k.startswith("eval.") and k not in logged})  # fields added since it was logged
+        trajectories = load_split(dataset_dir, split, meta, min_length=simulator.config.input_sequence_length + 1)
+        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress)
+        if "rollouts_stopped" not in evaluation.tags and not run.delete_artifact(
+                f"evaluation/{split}_monitor_states.npz"):
+            run.set_tags({"stale_artifacts": f"evaluation/{split}_monitor_states.npz (from before re-evaluation)"})
+        _log_evaluation(run, evaluation, out_dir, meta.bounds, split)
+        run.set_tags({"reevaluated": f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}: {reason}"})
+        return RunSummary(run.run_id, out_dir, checkpoint, evaluation.metrics)

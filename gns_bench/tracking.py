@@ -144,6 +144,22 @@ class Run:
     def log_dict(self, data: dict[str, Any], name: str) -> None:
         self._mlflow.log_dict(data, name)
 
+    def delete_tags(self, keys: list[str]) -> None:
+        """Remove those of `keys` the run had when it started (a re-evaluation drops what no longer holds)."""
+        for key in keys:
+            if key in self.run.data.tags:
+                self._mlflow.delete_tag(key)
+
+    def delete_artifact(self, path: str) -> bool:
+        """Delete one logged artifact; False when the artifact store cannot delete (the caller says so)."""
+        from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+        try:
+            get_artifact_repository(self.artifact_uri).delete_artifacts(path)
+        except (NotImplementedError, FileNotFoundError, OSError):
+            return False
+        return True
+
 
 @contextmanager
 def start_run(experiment: str, run_name: str, *, params: dict[str, Any] | None = None,

@@ -15,7 +15,7 @@ from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import metrics
-from gns_bench.evaluate.monitors import default_monitors
+from gns_bench.evaluate.monitors import arm, default_monitors, flags
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
 from gns_bench.model import features
 from gns_bench.model.precision import autocast, dtype_of, network_dtype
@@ -115,16 +115,20 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     bounds: the scene's walls when they are not the training data's (a larger arena)."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
-    results, per_traj, methods, stops = [], [], set(), []
+    results, per_traj, methods, stops, flagged = [], [], set(), [], []
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
-        run_hooks = (*hooks, *(health_monitors(simulator, traj, config.rollout_steps, bounds)
-                               if config.monitors else ()))
+        monitors = (arm(health_monitors(simulator, traj, config.rollout_steps, bounds), config.stop_on)
+                    if config.monitors else [])
+        run_hooks = (*hooks, *monitors)
         started = time.perf_counter()
         result = rollout(simulator, traj, config.rollout_steps, run_hooks, device,
                          neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds)
         rollout_seconds = time.perf_counter() - started
         if result.stopped_by is not None:
             stops.append(f"trajectory {index}: {result.stop_reason}")
+        trips = flags(monitors)  # monitors outside `stop_on`: the rollout ran on past them
+        if trips:
+            flagged.append(f"trajectory {index}: " + ", ".join(trip.reason for trip in trips))
         k = result.predicted.shape[0]
         mask = result.scored_mask(k)
         row = {
@@ -137,6 +141,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),
+            "rollout_flagged": float(bool(trips)),
         }
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
             row["context"] = float(traj.step_context[0, 0])
@@ -156,6 +161,8 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
     if stops:  # the report shows where monitors stopped rollouts
         tags["rollouts_stopped"] = "; ".join(stops)[:5000]
+    if flagged:  # and where they flagged the ones that ran on
+        tags["rollouts_flagged"] = "; ".join(flagged)[:5000]
     return Evaluation(summary, results, per_traj, tags)
 
 

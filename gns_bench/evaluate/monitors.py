@@ -1,14 +1,15 @@
-"""Rollout health monitors: hooks that stop a rollout the moment it produces garbage.
+"""Rollout health monitors: hooks that stop a rollout the moment it produces garbage, or flag it.
 
 Each monitor looks at the newly predicted positions and raises `MonitorTripped` (a `RolloutStopped`)
 naming itself, the step, the value it saw and its threshold; the rollout keeps the state where it
 tripped. The paper's failure modes this catches: NaN/inf, particles escaping the container, kinetic
-energy blowing up, and particles collapsing onto each other.
+energy blowing up, and particles collapsing onto each other. `arm` wraps the monitors that should not end
+a rollout in `Flag`, which records the first trip and lets the rollout run on.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,3 +127,29 @@ def default_monitors(bounds: Sequence[Sequence[float]], radius: float, initial_w
     return [FiniteMonitor(), BoundsMonitor(np.asarray(bounds, dtype=np.float64), 3 * radius),
             EnergyMonitor(moving, initial, radius, reference=reference_energy),
             DensityMonitor(moving, radius)]
+
+
+@dataclass
+class Flag:
+    """Runs `monitor` until it first trips, keeps that trip in `tripped`, and never stops the rollout."""
+
+    monitor: Callable[[RolloutState], None]
+    tripped: MonitorTripped | None = None
+
+    def __call__(self, state: RolloutState) -> None:
+        if self.tripped is None:
+            try:
+                self.monitor(state)
+            except MonitorTripped as trip:
+                self.tripped = trip
+
+
+def arm(monitors: Sequence, stop_on: Sequence[str]) -> list:
+    """The monitors named in `stop_on` as they are (they end a rollout), every other one wrapped in `Flag`."""
+    return [m if m.name in stop_on else Flag(m) for m in monitors]
+
+
+def flags(hooks: Sequence) -> list[MonitorTripped]:
+    """The trips that the `Flag` hooks among `hooks` recorded, in rollout order."""
+    return sorted((h.tripped for h in hooks if isinstance(h, Flag) and h.tripped is not None),
+                  key=lambda trip: trip.step)

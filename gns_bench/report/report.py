@@ -122,6 +122,12 @@ def budget_statement(rows: list[RunRow]) -> str:
         text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
                  f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
                  "their rollout MSE covers only the steps before the stop. ")
+    flagged = [r for r in done if r.metric("rollout_flagged") > 0]
+    if flagged:
+        text += (f"In {len(flagged)} of {len(done)} runs a monitor flagged some rollouts (a particle out of the "
+                 "bounds or a collapsed patch) and they ran on, as the paper's do: the rollout MSE counts that "
+                 "error (MLflow tag `<split>/rollouts_flagged` says where: "
+                 f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
     whole = _whole_rollouts(done)
     against_cv = [r.metric("rollout_mse") / r.metric("baseline_cv_rollout_mse") for r in whole
                   if r.metric("baseline_cv_rollout_mse") > 0]

@@ -97,9 +97,9 @@ def _rollout_lengths(run_id: str, split: str) -> tuple[int, int, int] | None:
 
 
 def trips(row: RunRow) -> list[str]:
-    """Every monitor stop recorded on a run: evaluation, stress tests and generalisation rollouts."""
+    """Every monitor stop (and flag) recorded on a run: evaluation, stress tests and generalisation rollouts."""
     return [f"`{key}`: {value}" for key, value in sorted(row.record.tags.items())
-            if key.endswith("rollouts_stopped") or key.endswith("/trips")] if row.record else []
+            if key.endswith(("rollouts_stopped", "rollouts_flagged", "/trips"))] if row.record else []
 
 
 def _per_trajectory(row: RunRow, variant: str, workdir: Path) -> list[dict[str, float]]:
@@ -162,7 +162,8 @@ def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: st
         lines += [f"Run `{row.run_id}` ({row.planned.name}): largest stable horizon **{horizon}**; largest stable "
                   f"scale **{scale}**. Tests skipped: {row.tag('stress/skipped') or 'none'}.", ""]
         stops = trips(row)
-        lines += ["Monitors that stopped rollouts:", "", *(f"- {s}" for s in stops), ""] if stops else \
+        lines += ["Monitors that stopped rollouts (or, tags ending `rollouts_flagged`, flagged them as they ran on):",
+                  "", *(f"- {s}" for s in stops), ""] if stops else \
             ["No health monitor tripped in any of this run's rollouts.", ""]
         with tempfile.TemporaryDirectory() as tmp:
             workdir = Path(tmp)
@@ -184,11 +185,12 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         prefix = f"generalisation/{variant}/"
         values = {k[len(prefix):]: v for k, v in row.record.metrics.items() if k.startswith(prefix)}
         lines += [f"{level}# generalisation: {variant}", "",
-                  "| rollout MSE | constant velocity | one-step MSE | OT | MMD | rollouts stopped | trajectories |",
-                  "|---|---|---|---|---|---|---|",
+                  "| rollout MSE | constant velocity | one-step MSE | OT | MMD | rollouts stopped | rollouts flagged "
+                  "| trajectories |",
+                  "|---|---|---|---|---|---|---|---|",
                   "| " + " | ".join(fmt(values.get(k, math.nan)) for k in (
                       "rollout_mse", "baseline_cv_rollout_mse", "one_step_mse", "ot", "mmd", "rollout_stopped",
-                      "num_trajectories")) + " |", ""]
+                      "rollout_flagged", "num_trajectories")) + " |", ""]
         per_trajectory = _per_trajectory(row, variant, workdir)
         if per_trajectory and all("context" in r for r in per_trajectory):
             figure = context_figure(per_trajectory, out_dir / f"{sweep.name}_{variant}_context.png",

@@ -23,14 +23,14 @@ from gns_bench import tracking
 from gns_bench.config import Config
 from gns_bench.data.format import read_metadata
 from gns_bench.data.generate import dataset_path, ensure_dataset
-from gns_bench.pipeline import RUN_ID_FILE, train_run
+from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 
 
 @dataclass
 class RunOutcome:
     name: str
-    status: str  # FINISHED, SKIPPED, SHARED, FAILED
+    status: str  # FINISHED, SKIPPED, SHARED, REEVALUATED, FAILED
     run_id: str = ""
     error: str = ""
     metrics: dict[str, float] | None = None
@@ -134,6 +134,39 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     return RunOutcome(run.name, "FINISHED", summary.run_id, metrics=summary.metrics)
 
 
+def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_root: Path, *,
+               reason: str, progress: bool = True, echo: Callable[[str], None] = print) -> list[RunOutcome]:
+    """Evaluate this sweep's finished runs again with today's evaluation, each into its own MLflow run
+    (`pipeline.reevaluate_run`); the runs it holds as copies of other sweeps' runs are copied afresh from
+    their sources, so re-evaluate the sweep that trained them first. Training is untouched."""
+    from mlflow.tracking import MlflowClient
+
+    records = {}
+    for record in tracking.search_runs("attributes.status = 'FINISHED'", sweep.experiment):
+        records.setdefault(record.tags.get("run_key"), record)  # newest first
+    outcomes = []
+    for run in runs:
+        dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
+        key = dataset_run_key(run, dataset)
+        record = records.get(key)
+        if record is None:
+            continue
+        if "shared_from" in record.tags:
+            source = trained_keys(run.domain).get(key)
+            if source is None:
+                echo(f"  {run.name}: its source run {record.tags['shared_from']} is gone; copy left as it was")
+                continue
+            MlflowClient(tracking_uri=tracking.tracking_uri()).delete_run(record.run_id)
+            echo(f"  {run.name}: copied afresh from {source.tags.get('sweep', '?')}/{source.name} ({source.run_id})")
+            outcomes.append(share_run(run, key, source))
+            continue
+        echo(f"  {run.name}: evaluating {record.run_id} again")
+        summary = reevaluate_run(record.run_id, dataset, run_dir(runs_root, run), run.config.eval, reason=reason,
+                                 progress=progress)
+        outcomes.append(RunOutcome(run.name, "REEVALUATED", summary.run_id, metrics=summary.metrics))
+    return outcomes
+
+
 def share_run(run: PlannedRun, key: str, source: tracking.RunRecord) -> RunOutcome:
     """Record `source` (trained by another sweep with the same key) as this planned run, without training."""
     run_id = tracking.copy_run(source, f"sweep:{run.sweep}", run.name, params=_sweep_params(run),
@@ -199,11 +232,18 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
               launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
-              only: Sequence[str] = (), train: bool = True, echo: Callable[[str], None] = print
-              ) -> list[RunOutcome]:
+              only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
+              echo: Callable[[str], None] = print) -> list[RunOutcome]:
     """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
-    or all. `share=False` trains runs another sweep already trained; `train=False` only records those."""
+    or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
+    `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why."""
     runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only)
+    if reevaluate_reason is not None:
+        finished = [r for r in runs if status[r.name] == "finished"]
+        echo(f"sweep {sweep.name} (tier {tier}): evaluating {len(finished)} finished runs again")
+        again = reevaluate(sweep, finished, data_root, runs_root, reason=reevaluate_reason, progress=progress,
+                           echo=echo)
+        runs = [r for r in runs if r.name not in {o.name for o in again}]
     pending = [r for r in runs if status[r.name] == "to run"]
     outcomes = [RunOutcome(r.name, "SKIPPED") for r in runs if status[r.name] == "finished"]
     selected = f" (--only {' '.join(only)})" if only else ""
@@ -229,4 +269,4 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         outcomes += submit(pending, data_root, runs_root / sweep.name / tier / "submitit", runs_root, cluster)
     else:
         raise ValueError(f"unknown launcher {launcher!r}; expected 'local' or 'submitit'")
-    return outcomes
+    return (again if reevaluate_reason is not None else []) + outcomes

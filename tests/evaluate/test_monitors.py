@@ -1,4 +1,5 @@
-"""Each health monitor trips on a constructed bad state and not on a good one; a NaN stops a rollout."""
+"""Each health monitor trips on a constructed bad state and not on a good one; a NaN stops a rollout; the
+monitors outside `eval.stop_on` flag a rollout and let it run on."""
 
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ from gns_bench.evaluate.monitors import (
     DensityMonitor,
     EnergyMonitor,
     FiniteMonitor,
+    Flag,
     MonitorTripped,
+    arm,
     default_monitors,
+    flags,
 )
 from gns_bench.evaluate.rollout import RolloutState, rollout
 from gns_bench.model.simulator import LearnedSimulator
@@ -141,3 +145,57 @@ def test_tripped_monitor_is_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path)
     moving = load_split(tiny_dataset, "test")[0].particle_type != 3
     assert np.isnan(saved["00000/position"][moving]).all()  # the bad state itself, as the monitor saw it
     assert np.isfinite(saved["00000/position"][~moving]).all()  # kinematic particles come from the data
+
+
+def test_monitor_names_in_the_config_are_the_monitors(grid: np.ndarray) -> None:
+    import typing
+
+    from gns_bench.config import ConfigError, MonitorName, config_from_dict
+
+    window = torch.tensor(np.stack([grid] * 6, axis=1), dtype=torch.float32)
+    monitors = default_monitors([[0.0, 1.0], [0.0, 1.0]], R, window, torch.ones(len(grid), dtype=torch.bool))
+    assert {m.name for m in monitors} == set(typing.get_args(MonitorName))
+    with pytest.raises(ConfigError, match="eval.stop_on.*walls"):
+        config_from_dict({"eval": {"stop_on": ["walls"]}}, "test")
+
+
+def test_a_flagging_monitor_lets_the_rollout_run_on(tiny_dataset: Path) -> None:
+    """Outside `stop_on` a monitor records its first trip and the rollout runs the whole horizon."""
+    torch.manual_seed(0)
+    meta = read_metadata(tiny_dataset)
+    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+                                 3e-4).eval()
+    traj = load_split(tiny_dataset, "test")[0]
+    far = np.array([[5.0, 6.0]] * meta.dim)  # every particle is far outside these bounds
+
+    stopping = arm([BoundsMonitor(far, 3 * R)], ["out_of_bounds"])
+    assert rollout(simulator, traj, 10, hooks=stopping).stopped_at == 0
+    assert flags(stopping) == []
+
+    flagging = arm([BoundsMonitor(far, 3 * R), FiniteMonitor()], ["non_finite"])
+    assert isinstance(flagging[0], Flag) and isinstance(flagging[1], FiniteMonitor)
+    result = rollout(simulator, traj, 10, hooks=flagging)
+    assert result.stopped_at is None and result.predicted.shape[0] == 10
+    (trip,) = flags(flagging)
+    assert trip.monitor == "out_of_bounds" and trip.step == 0  # the first trip, kept; later ones not re-raised
+
+
+def test_evaluation_flags_without_stopping_by_default(tiny_dataset: Path) -> None:
+    from gns_bench.config import EvalConfig
+    from gns_bench.evaluate.evaluate import evaluate
+
+    torch.manual_seed(0)
+    meta = read_metadata(tiny_dataset)
+    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+                                 3e-4).eval()
+    trajectories = load_split(tiny_dataset, "test")[:1]
+    far = [[5.0, 6.0]] * meta.dim
+    flagged = evaluate(simulator, trajectories, EvalConfig(one_step_windows=1, rollout_steps=8), progress=False,
+                       bounds=far)
+    assert flagged.metrics["rollout_flagged"] == 1.0 and flagged.metrics["rollout_stopped"] == 0.0
+    assert flagged.metrics["rollout_steps"] == 8.0
+    assert "trajectory 0: out_of_bounds at step 0" in flagged.tags["rollouts_flagged"]
+    stopped = evaluate(simulator, trajectories, EvalConfig(one_step_windows=1, rollout_steps=8,
+                                                           stop_on=["out_of_bounds"]), progress=False, bounds=far)
+    assert stopped.metrics["rollout_stopped"] == 1.0 and stopped.metrics["rollout_steps"] == 0.0
+    assert "rollouts_flagged" not in stopped.tags

@@ -362,3 +362,45 @@ def test_experiment_created_by_a_parallel_run_is_reused(monkeypatch: pytest.Monk
     monkeypatch.setattr(mlflow, "get_experiment_by_name", not_yet_there)
     assert tracking.experiment_id("race") == first
     assert len(calls) == 2
+
+
+def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture) -> None:
+    """`--reevaluate` evaluates a finished run again into its own MLflow run (the old values stay in the
+    metric history), drops the evaluation tags and artifacts it no longer earns, and re-copies shared runs."""
+    own = GRID.replace("learning_rate = 1e-3", "learning_rate = 4e-3")  # keys no other test trains
+    own = own.replace("[grid]", "[config.eval]\nmonitors = false\n\n[grid]")  # no monitor can stop this one
+    base_path, abl_path = sweeps / "tests" / "rbase.toml", sweeps / "tests" / "rabl.toml"
+    base_path.write_text(own.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[1]"))
+    abl_path.write_text(own.replace('"model.message_passing_steps" = [1, 2]\n', "")
+                        .replace("mlp_hidden_size = 8\n", "mlp_hidden_size = 8\nmessage_passing_steps = 1\n")
+                        .replace("[0.0, 3e-4]", "[3e-4]"))
+    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs")]
+    assert main(["sweep", str(base_path), *roots]) == 0
+    assert main(["sweep", str(abl_path), *roots]) == 0
+    (source,) = runs_of("sweep:test-rbase")
+    (old_copy,) = runs_of("sweep:test-rabl")
+    assert old_copy.data.tags["shared_from"] == source.info.run_id
+
+    # What an earlier evaluation left that this one will not earn: a stop tag and the stopped states
+    client = MlflowClient(tracking_uri=tracking.tracking_uri())
+    client.set_tag(source.info.run_id, "test/rollouts_stopped", "trajectory 0: out_of_bounds at step 3")
+    stale = tmp_path / "test_monitor_states.npz"
+    stale.write_bytes(b"stale")
+    client.log_artifact(source.info.run_id, str(stale), "evaluation")
+
+    assert main(["sweep", str(base_path), "--reevaluate", "a test", *roots]) == 0
+    assert "1 evaluated again" in capsys.readouterr().out
+    (after,) = runs_of("sweep:test-rbase")
+    assert after.info.run_id == source.info.run_id and after.info.status == "FINISHED"
+    assert "a test" in after.data.tags["reevaluated"]
+    assert "test/rollouts_stopped" not in after.data.tags
+    artifacts = {f.path for f in client.list_artifacts(source.info.run_id, "evaluation")}
+    assert "evaluation/test_monitor_states.npz" not in artifacts and "evaluation/test_rollouts.npz" in artifacts
+    assert len(client.get_metric_history(source.info.run_id, "test/rollout_mse")) == 2  # old value kept
+    assert after.data.metrics["train/final_step"] == source.data.metrics["train/final_step"]  # not retrained
+
+    assert main(["sweep", str(abl_path), "--reevaluate", *roots]) == 0
+    (new_copy,) = runs_of("sweep:test-rabl")
+    assert new_copy.info.run_id != old_copy.info.run_id and new_copy.data.tags["shared_from"] == source.info.run_id
+    assert client.get_run(old_copy.info.run_id).info.lifecycle_stage == "deleted"
