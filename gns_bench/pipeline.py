@@ -211,7 +211,6 @@ def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: E
         return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
 
 
-
 def reevaluate_run(run_id: str, dataset_dir: str | Path, out_dir: str | Path, eval_config: EvalConfig, *,
                    reason: str, device: str = "auto", progress: bool = True) -> RunSummary:
     """Evaluate a trained run's final checkpoint (`out_dir/checkpoint.pt`) again, into that same MLflow run,

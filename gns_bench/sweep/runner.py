@@ -156,9 +156,9 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
             if source is None:
                 echo(f"  {run.name}: its source run {record.tags['shared_from']} is gone; copy left as it was")
                 continue
+            outcomes.append(share_run(run, key, source))  # the new copy first: a failed copy ends FAILED
             MlflowClient(tracking_uri=tracking.tracking_uri()).delete_run(record.run_id)
             echo(f"  {run.name}: copied afresh from {source.tags.get('sweep', '?')}/{source.name} ({source.run_id})")
-            outcomes.append(share_run(run, key, source))
             continue
         echo(f"  {run.name}: evaluating {record.run_id} again")
         summary = reevaluate_run(record.run_id, dataset, run_dir(runs_root, run), run.config.eval, reason=reason,
@@ -238,14 +238,16 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why."""
     runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only)
+    again: list[RunOutcome] = []
     if reevaluate_reason is not None:
         finished = [r for r in runs if status[r.name] == "finished"]
         echo(f"sweep {sweep.name} (tier {tier}): evaluating {len(finished)} finished runs again")
         again = reevaluate(sweep, finished, data_root, runs_root, reason=reevaluate_reason, progress=progress,
                            echo=echo)
-        runs = [r for r in runs if r.name not in {o.name for o in again}]
     pending = [r for r in runs if status[r.name] == "to run"]
-    outcomes = [RunOutcome(r.name, "SKIPPED") for r in runs if status[r.name] == "finished"]
+    done_again = {o.name for o in again}
+    outcomes = again + [RunOutcome(r.name, "SKIPPED") for r in runs
+                        if status[r.name] == "finished" and r.name not in done_again]
     selected = f" (--only {' '.join(only)})" if only else ""
     echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished, "
          f"{len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
@@ -269,4 +271,4 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         outcomes += submit(pending, data_root, runs_root / sweep.name / tier / "submitit", runs_root, cluster)
     else:
         raise ValueError(f"unknown launcher {launcher!r}; expected 'local' or 'submitit'")
-    return (again if reevaluate_reason is not None else []) + outcomes
+    return outcomes
