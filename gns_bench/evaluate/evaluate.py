@@ -131,13 +131,16 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             flagged.append(f"trajectory {index}: " + ", ".join(trip.reason for trip in trips))
         k = result.predicted.shape[0]
         mask = result.scored_mask(k)
+        constant_velocity = metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0])
         row = {
             "trajectory": index,
             "one_step_mse": one_step_mse(simulator, traj, config.one_step_windows, device),
             "rollout_mse": metrics.rollout_mse(result.predicted, result.ground_truth[:k], mask) if k else float("nan"),
             "baseline_cv_rollout_mse": metrics.rollout_mse(
-                metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0]),
-                result.ground_truth, result.scored_mask(result.ground_truth.shape[0])),
+                constant_velocity, result.ground_truth, result.scored_mask(result.ground_truth.shape[0])),
+            # over the steps the GNS rollout covered: the like-for-like baseline when a monitor stopped it
+            "baseline_cv_same_steps_mse": (metrics.rollout_mse(constant_velocity[:k], result.ground_truth[:k], mask)
+                                           if k else float("nan")),
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),

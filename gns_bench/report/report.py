@@ -64,10 +64,24 @@ def _run_ids(rows: list[RunRow]) -> str:
     return "<br>".join(run_id_cell(r) for r in rows if r.run_id) or "—"
 
 
-def _whole_rollouts(rows: list[RunRow]) -> list[RunRow]:
-    """Finished runs whose rollouts no monitor stopped: only there does the GNS's rollout MSE cover the steps
-    that the constant-velocity baseline's (always the whole horizon) covers."""
-    return [r for r in rows if r.ok and not r.metric("rollout_stopped") > 0]
+def comparable_cv(row: RunRow) -> float:
+    """The constant-velocity rollout MSE over the steps this run's GNS rollouts covered: the whole horizon, or
+    the steps before a monitor's stop; NaN for a stopped run evaluated before that was logged."""
+    same_steps = row.metric("baseline_cv_same_steps_mse")
+    if math.isfinite(same_steps):
+        return same_steps
+    return math.nan if row.metric("rollout_stopped") > 0 else row.metric("baseline_cv_rollout_mse")
+
+
+def _against_cv(rows: list[RunRow]) -> str:
+    """GNS / constant-velocity rollout MSE, both over the same steps, over the runs where that can be said."""
+    paired = [r for r in rows if r.ok and comparable_cv(r) > 0]
+    if not paired:
+        return "GNS rollouts stopped" if any(r.ok and r.metric("rollout_stopped") > 0 for r in rows) else "—"
+    value = ratio(mean_std([r.metric("rollout_mse") for r in paired])[0],
+                  mean_std([comparable_cv(r) for r in paired])[0])
+    return value + (" over the steps before the stops" if any(r.metric("rollout_stopped") > 0 for r in paired)
+                    else "")
 
 
 def budget(rows: list[RunRow]) -> str:
@@ -124,20 +138,20 @@ def budget_statement(rows: list[RunRow]) -> str:
                  "their rollout MSE covers only the steps before the stop. ")
     flagged = [r for r in done if r.metric("rollout_flagged") > 0]
     if flagged:
-        text += (f"In {len(flagged)} of {len(done)} runs a monitor flagged some rollouts (a particle out of the "
-                 "bounds or a collapsed patch) and they ran on, as the paper's do: the rollout MSE counts that "
-                 "error (MLflow tag `<split>/rollouts_flagged` says where: "
+        text += (f"In {len(flagged)} of {len(done)} runs a monitor outside `eval.stop_on` flagged some rollouts "
+                 "(by default: a particle out of the bounds) and they ran on, as the paper's do: the rollout MSE "
+                 "counts that error (MLflow tag `<split>/rollouts_flagged` says where: "
                  f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
-    whole = _whole_rollouts(done)
-    against_cv = [r.metric("rollout_mse") / r.metric("baseline_cv_rollout_mse") for r in whole
-                  if r.metric("baseline_cv_rollout_mse") > 0]
+    against_cv = [r.metric("rollout_mse") / comparable_cv(r) for r in done if comparable_cv(r) > 0]
     against_cv = [x for x in against_cv if math.isfinite(x)]
+    left_out = sum(r.metric("rollout_stopped") > 0 and not math.isfinite(comparable_cv(r)) for r in done)
     if against_cv:
         low, high = min(against_cv), max(against_cv)
         span = f"{low:.2g}x" + (f" to {high:.2g}x" if high > low else "")
-        text += (f"On the same trajectories, the GNS's rollout MSE is {span} that of a constant-velocity "
-                 "extrapolation (below 1x: the model beats it"
-                 + ("; runs with stopped rollouts left out" if len(whole) < len(done) else "") + "). ")
+        text += (f"On the same trajectories and steps, the GNS's rollout MSE is {span} that of a "
+                 "constant-velocity extrapolation (below 1x: the model beats it"
+                 + (f"; left out: {left_out} run(s) with stopped rollouts, evaluated before the baseline over "
+                    "the same steps was logged" if left_out else "") + "). ")
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
     if any(t != "paper" for t in tiers):
         text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
@@ -163,15 +177,13 @@ def domain_row(sweep: SweepSpec, rows: list[RunRow]) -> str:
     rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
     # the trivial baseline on the same trajectories: a model that does not beat it has learned little dynamics
     constant_velocity = mean_std([r.metric("baseline_cv_rollout_mse") for r in rows])[0]
-    whole = _whole_rollouts(rows)  # the ratio compares like with like: runs whose rollouts ran the whole horizon
-    whole_ratio = ratio(mean_std([r.metric("rollout_mse") for r in whole])[0],
-                        mean_std([r.metric("baseline_cv_rollout_mse") for r in whole])[0])
-    baseline = ("—" if not math.isfinite(constant_velocity) else
-                f"{fmt(constant_velocity)} ({whole_ratio if whole else 'GNS rollouts stopped'})")
+    baseline = "—" if not math.isfinite(constant_velocity) else f"{fmt(constant_velocity)} ({_against_cv(rows)})"
+    stopped = any(r.ok and r.metric("rollout_stopped") > 0 for r in rows)
     cells = [ref.name if ref else sweep.domain, ref.simulator if ref else "—", str(ref.dim) if ref else "—",
              f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
              fmt(one_step), fmt(ref.one_step_mse) if ref else "—", ratio(one_step, ref.one_step_mse if ref else None),
-             fmt(rollout), fmt(ref.rollout_mse) if ref else "—", ratio(rollout, ref.rollout_mse if ref else None),
+             fmt(rollout), fmt(ref.rollout_mse) if ref else "—",
+             ratio(rollout, ref.rollout_mse if ref else None) + (" (stopped rollouts)" if stopped and ref else ""),
              baseline,
              fmt(ref.cconv_rollout_mse) if ref and ref.cconv_rollout_mse else "—",
              *(fmt(mean_std([r.metric(m) for r in rows])[0]) for m in ("ot", "mmd", "kinetic_energy_error")),

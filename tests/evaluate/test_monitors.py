@@ -135,6 +135,14 @@ def test_tripped_monitor_is_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path)
     evaluation = evaluate(simulator, load_split(tiny_dataset, "test")[:1], EvalConfig(one_step_windows=1),
                           progress=False)
     assert evaluation.metrics["rollout_stopped"] == 1.0
+    # the baseline over the 3 steps the GNS covered, beside the one over the whole horizon
+    from gns_bench.evaluate import metrics
+
+    result = evaluation.rollouts[0]
+    constant_velocity = metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0])
+    assert evaluation.metrics["baseline_cv_same_steps_mse"] == pytest.approx(
+        metrics.rollout_mse(constant_velocity[:3], result.ground_truth[:3], result.moving_mask))
+    assert evaluation.metrics["baseline_cv_same_steps_mse"] < evaluation.metrics["baseline_cv_rollout_mse"]
     with tracking.start_run("monitor-test", "nan") as run:
         _log_evaluation(run, evaluation, tmp_path, meta.bounds, "test")
     logged = MlflowClient(tracking_uri=tracking.tracking_uri()).get_run(run.run_id)

@@ -221,9 +221,12 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
 
     planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
 
-    def row(rollout: float, constant_velocity: float, stopped: float = 0.0) -> RunRow:
+    def row(rollout: float, constant_velocity: float, stopped: float = 0.0,
+            same_steps: float | None = None) -> RunRow:
         metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": constant_velocity,
                    "test/rollout_stopped": stopped}
+        if same_steps is not None:
+            metrics["test/baseline_cv_same_steps_mse"] = same_steps
         return RunRow(planned, tracking.RunRecord("r", planned.name, "FINISHED", 0, {"train.steps": "20"}, metrics))
 
     assert "rollout MSE is 0.25x to 1.5x that of a constant-velocity" in budget_statement([row(1.0, 4.0),
@@ -231,10 +234,13 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
     assert "rollout MSE is 0.5x that of" in budget_statement([row(1.0, 2.0)])
     assert "constant-velocity" not in budget_statement([row(1.0, 0.0)])  # no baseline logged
     assert "own solvers" not in budget_statement([row(1.0, 2.0)])  # no dataset tier: an imported dataset
-    # A stopped rollout's MSE covers fewer steps than the baseline's whole horizon: no comparison.
+    # A stopped rollout's MSE covers fewer steps than the baseline's whole horizon: no comparison, unless
+    # the baseline over the same steps was logged
     assert "constant-velocity" not in budget_statement([row(1.0, 4.0, stopped=0.2)])
     text = budget_statement([row(1.0, 4.0, stopped=0.2), row(1.0, 2.0)])
-    assert "is 0.5x that of" in text and "runs with stopped rollouts left out" in text
+    assert "is 0.5x that of" in text and "left out: 1 run(s) with stopped rollouts" in text
+    text = budget_statement([row(1.0, 4.0, stopped=0.2, same_steps=0.5), row(1.0, 2.0)])
+    assert "is 0.5x to 2x that of" in text and "left out" not in text
 
     from gns_bench.report.report import domain_row
 
@@ -243,3 +249,6 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
     assert "| 4 (GNS rollouts stopped) |" in domain_row(goop, [row(1.0, 4.0, stopped=0.2)])
     # the ratio takes both MSEs from the runs that rolled out whole; the value is every run's baseline
     assert "| 5 (0.5x) |" in domain_row(goop, [row(1.0, 2.0), row(9.0, 8.0, stopped=0.2)])
+    # with the baseline over the steps before the stop, stopped runs compare too; the paper ratio is marked
+    stopped = domain_row(goop, [row(1.0, 4.0, stopped=0.2, same_steps=0.5)])
+    assert "| 4 (2x over the steps before the stops) |" in stopped and "x (stopped rollouts) |" in stopped
