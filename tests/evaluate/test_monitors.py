@@ -34,6 +34,14 @@ def state(position: np.ndarray, previous: np.ndarray | None = None, step: int = 
     return RolloutState(step, step + 6, torch.tensor(position, dtype=torch.float32), window)
 
 
+def untrained_simulator(dataset: Path) -> tuple[LearnedSimulator, object]:
+    """A small untrained GNS on `dataset` (seeded), with the dataset's metadata."""
+    torch.manual_seed(0)
+    meta = read_metadata(dataset)
+    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+                            3e-4).eval(), meta
+
+
 @pytest.fixture
 def grid() -> np.ndarray:
     axis = np.linspace(0.2, 0.8, 15)
@@ -87,10 +95,7 @@ def test_density_monitor(grid: np.ndarray) -> None:
 
 
 def test_injected_nan_stops_the_rollout_at_that_step(tiny_dataset: Path) -> None:
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
-                                 3e-4).eval()
+    simulator, meta = untrained_simulator(tiny_dataset)
     traj = load_split(tiny_dataset, "test")[0]
     calls = {"n": 0}
     forward = simulator.forward
@@ -120,10 +125,7 @@ def test_tripped_monitor_is_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path)
     from gns_bench.evaluate.evaluate import evaluate
     from gns_bench.pipeline import _log_evaluation
 
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
-                                 3e-4).eval()
+    simulator, meta = untrained_simulator(tiny_dataset)
     forward, calls = simulator.forward, {"n": 0}
 
     def poisoned(*args, **kwargs):
@@ -169,10 +171,7 @@ def test_monitor_names_in_the_config_are_the_monitors(grid: np.ndarray) -> None:
 
 def test_a_flagging_monitor_lets_the_rollout_run_on(tiny_dataset: Path) -> None:
     """Outside `stop_on` a monitor records its first trip and the rollout runs the whole horizon."""
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
-                                 3e-4).eval()
+    simulator, meta = untrained_simulator(tiny_dataset)
     traj = load_split(tiny_dataset, "test")[0]
     far = np.array([[5.0, 6.0]] * meta.dim)  # every particle is far outside these bounds
 
@@ -192,10 +191,7 @@ def test_evaluation_flags_without_stopping_by_default(tiny_dataset: Path) -> Non
     from gns_bench.config import EvalConfig
     from gns_bench.evaluate.evaluate import evaluate
 
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    simulator = LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
-                                 3e-4).eval()
+    simulator, meta = untrained_simulator(tiny_dataset)
     trajectories = load_split(tiny_dataset, "test")[:1]
     far = [[5.0, 6.0]] * meta.dim
     flagged = evaluate(simulator, trajectories, EvalConfig(one_step_windows=1, rollout_steps=8), progress=False,
