@@ -182,8 +182,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="train nothing: only record the runs other sweeps already trained (shared)")
     p.add_argument("--reevaluate", nargs="?", const="the evaluation changed", default=None, metavar="REASON",
                    help="first evaluate the finished runs again from their final checkpoints, into their own MLflow "
-                        "runs (tag 'reevaluated' records REASON), and copy shared runs afresh; then the sweep runs what it lacks "
-                        "as usual (add --no-train to train nothing)")
+                        "runs (tag 'reevaluated' records REASON), and copy shared runs afresh; then the sweep runs "
+                        "what it lacks as usual (add --no-train to train nothing)")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--runs-root", type=Path, default=Path("runs"))
 

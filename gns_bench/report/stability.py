@@ -70,17 +70,23 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
 def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
     """Without a horizon test, the test split's evaluation rollouts still bound the stable horizon: the fewest
     steps any of them ran before a monitor stopped it, as a multiple of the training length when they ran
-    whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one."""
+    whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one, or flagged one (a
+    monitor outside `eval.stop_on` tripped and the rollout ran on: not stable either)."""
     lengths = _rollout_lengths(row.artifact_run_id, row.split)
     if lengths is None:
         return "not run", False
     count, ran, full = lengths
     rollouts = f"the {count} test rollout{'s' if count != 1 else ''}"
     stopped = ran < full
+    flagged = row.metric("rollout_flagged") > 0
+    quiet = (f"no monitor stopped one, but one flagged one (`{row.split}/rollouts_flagged`)" if flagged
+             else "no monitor tripped")
     if row.param("eval.rollout_steps", "None") not in ("", "None"):  # cut short: no multiple of the length
-        what = "a monitor stopped one" if stopped else "no monitor tripped"
-        return f"{ran} of {full} steps of {rollouts} (evaluation cut at {full} steps), {what}", stopped
+        what = "a monitor stopped one" if stopped else quiet
+        return f"{ran} of {full} steps of {rollouts} (evaluation cut at {full} steps), {what}", stopped or flagged
     if not stopped:
+        if flagged:
+            return f"< 1x ({full} steps of {rollouts}, {quiet}; no longer scene run)", True
         return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)", False
     return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)", True
 

@@ -90,8 +90,8 @@ def test_without_a_horizon_test_the_evaluation_rollouts_bound_the_horizon(stress
     cell = r"\| \d+ of 10 steps of the 1 test rollout \(evaluation cut at 10 steps\), ([^|]*)\| ([^|]*) \|"
     match = re.search(cell, row)
     assert match, row
-    stopped = match.group(1).startswith("a monitor stopped")
-    assert match.group(2).startswith("none: unstable") if stopped else match.group(2) == "not run", row
+    unstable = match.group(1).startswith("a monitor stopped") or "flagged" in match.group(1)
+    assert match.group(2).startswith("none: unstable") if unstable else match.group(2) == "not run", row
 
 
 def test_stress_command(stressed: dict[str, Path], capsys: pytest.CaptureFixture) -> None:
@@ -130,3 +130,21 @@ def test_scale_cell_says_none_when_the_model_is_unstable_at_the_training_scale()
     _, scale = stable_cells(_Row(horizon_stable_steps=44, horizon_training_length=150, horizon_steps=1200,
                                  scale_largest_stable_factor=0.0))
     assert scale == "none stable"
+
+
+def test_a_flagged_evaluation_rollout_is_not_a_stable_horizon(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without a horizon test, whole evaluation rollouts that a monitor flagged (it tripped, they ran on)
+    do not make the horizon >= 1x."""
+    from gns_bench.report import stability
+
+    class Row(_Row):
+        artifact_run_id, split = "r", "test"
+
+        def param(self, name: str, default: str = "") -> str:
+            return "None"
+
+    monkeypatch.setattr(stability, "_rollout_lengths", lambda run_id, split: (5, 395, 395))
+    horizon, unstable = stability._evaluation_horizon(Row())
+    assert horizon.startswith(">= 1x") and not unstable
+    horizon, unstable = stability._evaluation_horizon(Row(rollout_flagged=1.0))
+    assert horizon.startswith("< 1x") and "flagged" in horizon and unstable
