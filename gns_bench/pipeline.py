@@ -222,6 +222,9 @@ def reevaluate_run(run_id: str, dataset_dir: str | Path, out_dir: str | Path, ev
     checkpoint = out_dir / "checkpoint.pt"
     if not checkpoint.exists():
         raise FileNotFoundError(f"{checkpoint}: run {run_id} has no checkpoint here to evaluate again")
+    owner = (out_dir / RUN_ID_FILE).read_text().strip() if (out_dir / RUN_ID_FILE).exists() else run_id
+    if owner != run_id:
+        raise ValueError(f"{out_dir / RUN_ID_FILE}: this checkpoint belongs to MLflow run {owner}, not {run_id}")
     torch_device = str(resolve_device(device))
     simulator, _, meta = load_simulator(checkpoint, torch_device)
     split = eval_config.split

@@ -400,6 +400,15 @@ def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_
     assert len(client.get_metric_history(source.info.run_id, "test/rollout_mse")) == 2  # old value kept
     assert after.data.metrics["train/final_step"] == source.data.metrics["train/final_step"]  # not retrained
 
+    # a checkpoint that another MLflow run left in the run's directory is not evaluated into this one
+    from gns_bench.pipeline import reevaluate_run
+    from gns_bench.sweep.runner import run_dir
+
+    (planned,) = load_sweep(base_path).plan("smoke")
+    out_dir = run_dir(tmp_path / "runs", planned)
+    with pytest.raises(ValueError, match="belongs to MLflow run"):
+        reevaluate_run("0" * 32, tmp_path / "data", out_dir, planned.config.eval, reason="wrong run")
+
     assert main(["sweep", str(abl_path), "--reevaluate", *roots]) == 0
     (new_copy,) = runs_of("sweep:test-rabl")
     assert new_copy.info.run_id != old_copy.info.run_id and new_copy.data.tags["shared_from"] == source.info.run_id
