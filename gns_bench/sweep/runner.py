@@ -63,10 +63,13 @@ def dataset_run_key(run: PlannedRun, dataset_dir: Path) -> str:
     return run_key(run, metadata.content_hash or "", metadata.default_connectivity_radius)
 
 
-def finished_keys(experiment: str) -> dict[str, str]:
-    """run_key -> run id of the FINISHED (not deleted) runs of an experiment."""
-    runs = tracking.search_runs("attributes.status = 'FINISHED'", experiment)
-    return {r.tags["run_key"]: r.run_id for r in runs if "run_key" in r.tags}
+def finished_keys(experiment: str) -> dict[str, tracking.RunRecord]:
+    """run_key -> the newest FINISHED (not deleted) run of an experiment with that key."""
+    finished: dict[str, tracking.RunRecord] = {}
+    for record in tracking.search_runs("attributes.status = 'FINISHED'", experiment):  # newest first
+        if "run_key" in record.tags:
+            finished.setdefault(record.tags["run_key"], record)
+    return finished
 
 
 def trained_keys(domain: str) -> dict[str, tracking.RunRecord]:
@@ -141,9 +144,7 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
     their sources, so re-evaluate the sweep that trained them first. Training is untouched."""
     from mlflow.tracking import MlflowClient
 
-    records = {}
-    for record in tracking.search_runs("attributes.status = 'FINISHED'", sweep.experiment):
-        records.setdefault(record.tags.get("run_key"), record)  # newest first
+    records = finished_keys(sweep.experiment)
     outcomes = []
     for run in runs:
         dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
