@@ -101,13 +101,15 @@ def _sweep_session(path: Path):
     return session
 
 
-# One session per sweep file, named as gns-bench names the sweep (gns_bench/sweep/spec.py sweep_name):
-# sweeps/ablations/noise_std.toml -> ablation-noise_std, sweeps/stress/goop.toml -> stress-goop. A new TOML is a new session; nothing here changes.
+# One session per sweep file, named as gns-bench names the sweep (gns_bench/sweep/spec.py sweep_name),
+# with gns_bench.sweep.spec.SWEEP_PREFIXES copied here (this file runs before gns_bench is installed):
+# sweeps/ablations/noise_std.toml -> ablation-noise_std, sweeps/studies/learning_rate_decay.toml ->
+# study-learning_rate_decay. A new TOML is a new session; nothing here changes.
+SWEEP_PREFIXES = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
 for _path in sorted(Path("sweeps").rglob("*.toml")):
     if _path.name == "tiers.toml":
         continue
     _folder = _path.parent.name if _path.parent != Path("sweeps") else ""
-    if _folder.endswith("s") and not _folder.endswith("ss"):  # domains -> domain; stress stays stress
-        _folder = _folder[:-1]
-    _name = f"{_folder}-{_path.stem}" if _folder else _path.stem
+    _prefix = SWEEP_PREFIXES.get(_folder, _folder)
+    _name = f"{_prefix}-{_path.stem}" if _prefix else _path.stem
     nox.session(name=_name, venv_backend="none")(_sweep_session(_path))

@@ -24,6 +24,9 @@ from gns_bench.config import Config, ConfigError, config_from_dict
 TIERS = ("smoke", "small", "paper")
 SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 TIERS_FILE = "tiers.toml"
+# sweeps/<folder>/<file>.toml is named <prefix>-<file>; a folder not listed here is its own prefix.
+# noxfile.py keeps a copy (it runs before gns_bench is installed); a test checks that the two agree.
+SWEEP_PREFIXES = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
 _SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "tiers", "paper_figure"}
 _TIER_KEYS = {"dataset_tier", "seeds", "config", "grid"}
 
@@ -182,15 +185,15 @@ def load_tier_defaults(sweeps_dir: Path = SWEEPS_DIR) -> dict[str, TierSpec]:
 
 
 def sweep_name(path: Path, sweeps_dir: Path = SWEEPS_DIR) -> str:
-    """`sweeps/domains/goop.toml` -> `domain-goop`; `sweeps/ablations/noise_std.toml` -> `ablation-noise_std`."""
+    """`sweeps/domains/goop.toml` -> `domain-goop`; `sweeps/ablations/noise_std.toml` -> `ablation-noise_std`;
+    `sweeps/studies/learning_rate_decay.toml` -> `study-learning_rate_decay`."""
     try:
         relative = path.resolve().relative_to(sweeps_dir.resolve())
     except ValueError:
         return path.stem
     folder = relative.parts[0] if len(relative.parts) > 1 else ""
-    if folder.endswith("s") and not folder.endswith("ss"):  # domains -> domain, but stress stays stress
-        folder = folder[:-1]
-    return f"{folder}-{path.stem}" if folder else path.stem
+    prefix = SWEEP_PREFIXES.get(folder, folder)
+    return f"{prefix}-{path.stem}" if prefix else path.stem
 
 
 def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:

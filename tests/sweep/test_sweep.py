@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import mlflow
@@ -12,7 +13,7 @@ from mlflow.tracking import MlflowClient
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.sweep.runner import prepare, run_key, run_sweep
-from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
+from gns_bench.sweep.spec import SWEEP_PREFIXES, SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
 GRID = '''description = "2x2 test grid"
 domain = "tiny"
@@ -52,6 +53,7 @@ def test_every_sweep_file_loads_and_plans() -> None:
     assert ablations == {"message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
                          "position_encoding", "noise_correction", "mlp_depth", "latent_size", "self_edges",
                          "global_latent", "gravity_bias", "linear_encoder_decoder"}
+    assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay"}
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
     assert [r.config.model.message_passing_steps for r in mp.plan("small")] == [0, 1, 2, 3, 5, 7, 10, 15]
     assert all(r.config.train.steps == 20 and r.config.model.latent_size == 16 for r in mp.plan("smoke"))
@@ -278,9 +280,11 @@ def test_nox_has_one_session_per_sweep_file(monkeypatch: pytest.MonkeyPatch) -> 
 
     monkeypatch.chdir(SWEEPS_DIR.parent)
     spec = importlib.util.spec_from_file_location("noxfile_under_test", SWEEPS_DIR.parent / "noxfile.py")
-    spec.loader.exec_module(importlib.util.module_from_spec(spec))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
     sessions = set(nox.registry.get())
     assert {load_sweep(p).name for p in discover_sweeps()} <= sessions
+    assert module.SWEEP_PREFIXES == SWEEP_PREFIXES
     assert {"tests", "lint", "ui"} <= sessions
 
 
@@ -413,3 +417,17 @@ def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_
     (new_copy,) = runs_of("sweep:test-rabl")
     assert new_copy.info.run_id != old_copy.info.run_id and new_copy.data.tags["shared_from"] == source.info.run_id
     assert client.get_run(old_copy.info.run_id).info.lifecycle_stage == "deleted"
+
+
+def test_the_decay_study_shares_its_compressed_and_paper_points_with_the_goop_domain_runs() -> None:
+    """The study's 5,000-step point is the GOOP small run's config (tiers.toml), and its 5,000,000-step point
+    the paper's default: both must key like a domain-goop run, so they are shared, not trained again."""
+    study = {r.config.train.learning_rate_decay_steps: r for r in
+             load_sweep(SWEEPS_DIR / "studies" / "learning_rate_decay.toml").plan("small")}
+    goop = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("small")[0]
+    assert sorted(study) == [2_500, 5_000, 10_000, 5_000_000]
+    assert run_key(study[5_000], "hash", 0.015) == run_key(goop, "hash", 0.015)
+    paper_decay = replace(goop, config=replace(goop.config, train=replace(goop.config.train,
+                                                                         learning_rate_decay_steps=5_000_000)))
+    assert run_key(study[5_000_000], "hash", 0.015) == run_key(paper_decay, "hash", 0.015)
+    assert run_key(study[10_000], "hash", 0.015) != run_key(goop, "hash", 0.015)
