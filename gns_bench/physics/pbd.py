@@ -47,6 +47,9 @@ from gns_bench.physics.sph_grid import (
     check_frame,
     in_grid,
     ivec3,
+    nd_f32,
+    nd_i32,
+    nd_vec3,
     to_vec3_ndarray,
     vec3,
 )
@@ -56,9 +59,6 @@ from gns_bench.physics.taichi_runtime import ensure_taichi
 WATER_TYPE = 5
 RIGID_TYPE = 0
 KINEMATIC_TYPE = 3
-nd_vec3 = ti.types.ndarray(dtype=vec3, ndim=1)
-nd_f32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-nd_i32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 nd_mat3 = ti.types.ndarray(dtype=ti.math.mat3, ndim=1)
 
 

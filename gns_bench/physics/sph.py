@@ -50,6 +50,9 @@ from gns_bench.physics.sph_grid import (
     check_frame,
     in_grid,
     ivec3,
+    nd_f32,
+    nd_i32,
+    nd_vec3,
     to_vec3_ndarray,
     vec3,
 )
@@ -60,9 +63,6 @@ WATER_TYPE = 5
 MAX_ITERATIONS = 100
 FULL_NEIGHBOURHOOD = 20  # fluid + boundary neighbours below which the divergence solve skips a particle
 MAX_NEIGHBOURS = 96  # list capacity: about three times the neighbours at rest density; exceeding it raises
-nd_vec3 = ti.types.ndarray(dtype=vec3, ndim=1)
-nd_f32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-nd_i32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 nd_nbr = ti.types.ndarray(dtype=ti.i32, ndim=2)
 nd_w = ti.types.ndarray(dtype=ti.f32, ndim=2)
 nd_grad = ti.types.ndarray(dtype=vec3, ndim=2)

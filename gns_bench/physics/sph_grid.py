@@ -21,6 +21,10 @@ __all__ = ["CellList", "Grid", "SimulationError", "check_frame", "to_vec3_ndarra
 
 vec3 = ti.math.vec3
 ivec3 = ti.math.ivec3
+# Kernel argument types of the SPH and PBD solvers: 1D ndarrays of vectors, floats and indices.
+nd_vec3 = ti.types.ndarray(dtype=vec3, ndim=1)
+nd_f32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+nd_i32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 
 
 @dataclass(frozen=True)
