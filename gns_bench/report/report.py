@@ -73,15 +73,36 @@ def comparable_cv(row: RunRow) -> float:
     return math.nan if row.metric("rollout_stopped") > 0 else row.metric("baseline_cv_rollout_mse")
 
 
+def _paired_with_cv(rows: list[RunRow]) -> list[RunRow]:
+    """The runs whose constant-velocity MSE over the GNS rollouts' own steps is known."""
+    return [r for r in rows if comparable_cv(r) > 0]  # NaN (not finished, not logged) fails the test
+
+
+def cv_ratio(rows: list[RunRow]) -> str:
+    """GNS / constant-velocity rollout MSE (means over runs), both over the same steps; "—" where unknown."""
+    paired = _paired_with_cv(rows)
+    if not paired:
+        return "—"
+    return ratio(mean_std([r.metric("rollout_mse") for r in paired])[0],
+                 mean_std([comparable_cv(r) for r in paired])[0])
+
+
 def _against_cv(rows: list[RunRow]) -> str:
-    """GNS / constant-velocity rollout MSE, both over the same steps, over the runs where that can be said."""
-    paired = [r for r in rows if comparable_cv(r) > 0]  # NaN (not finished, not logged) fails the test
+    """`cv_ratio` in words, for the domain table's baseline cell."""
+    paired = _paired_with_cv(rows)
     if not paired:
         return "GNS rollouts stopped" if any(r.metric("rollout_stopped") > 0 for r in rows) else "—"
-    value = ratio(mean_std([r.metric("rollout_mse") for r in paired])[0],
-                  mean_std([comparable_cv(r) for r in paired])[0])
-    return value + (" over the steps before the stops" if any(r.metric("rollout_stopped") > 0 for r in paired)
-                    else "")
+    return cv_ratio(paired) + (" over the steps before the stops"
+                               if any(r.metric("rollout_stopped") > 0 for r in paired) else "")
+
+
+def steps_covered(rows: list[RunRow]) -> str:
+    """Mean number of steps the finished runs' rollouts covered, and the share a monitor stopped."""
+    steps, _, n = mean_std([r.metric("rollout_steps") for r in rows])
+    if not n:
+        return MISSING if not any(r.ok for r in rows) else "—"
+    stopped = mean_std([r.metric("rollout_stopped") for r in rows])[0]
+    return f"{steps:.0f}" + (f" ({stopped:.0%} stopped)" if stopped > 0 else "")
 
 
 def budget(rows: list[RunRow]) -> str:
@@ -231,14 +252,20 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path) -> lis
         figure = figures.ablation_figure(axis, values, stats, reference, out_dir / f"ablation_{name}.png")
         default = axis_value_label(reference["default"]) if "default" in reference else "none given"
         lines += [f"## {axis}", "", f"Paper default: {default} (dashed line); x scale: {reference['scale']}; "
-                  "error bars: std over seeds.", "", f"![{axis}]({figure.name})", "",
-                  "| value | seeds | one-step MSE | rollout MSE | OT | MMD |", "|---|---|---|---|---|---|"]
+                  "error bars: std over seeds.", "", f"![{axis}]({figure.name})", ""]
+        if any(r.metric("rollout_stopped") > 0 for r in rows):
+            lines += ["A health monitor stopped some rollouts, so rollout MSE, OT and MMD cover different steps in "
+                      "different runs (column *rollout steps*). *vs constant velocity* divides the rollout MSE by "
+                      "constant velocity's over the same steps: that column compares runs like for like.", ""]
+        lines += ["| value | seeds | one-step MSE | rollout MSE | OT | MMD | rollout steps | vs constant velocity |",
+                  "|---|---|---|---|---|---|---|---|"]
         for i, value in enumerate(values):
+            at_value = [r for r in rows if r.planned.axes[axis] == value]
             seeds = stats["rollout_mse"][i][2]
-            planned = sum(1 for r in rows if r.planned.axes[axis] == value)
             cells = [f"{fmt(stats[m][i][0])} ± {fmt(stats[m][i][1])}" if stats[m][i][2] else MISSING
                      for m, _ in figures.PANELS]
-            lines.append(f"| {axis_value_label(value)} | {seeds}/{planned} | " + " | ".join(cells) + " |")
+            cells += [steps_covered(at_value), cv_ratio(at_value) if seeds else MISSING]
+            lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines
 

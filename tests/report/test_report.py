@@ -115,7 +115,15 @@ def test_ablation_sweep_report_marks_missing_values(swept: dict[str, Path], tmp_
     rows = {r[0]: r for r in table_rows(text, "0") + table_rows(text, "0.0003") + table_rows(text, "0.001")}
     assert rows["0"][1] == "2/2" and rows["0.0003"][1] == "2/2" and rows["0.001"][1] == "0/2"
     assert all(cell == "**missing**" for cell in rows["0.001"][2:])
-    assert all("±" in cell for cell in rows["0"][2:])
+    assert all("±" in cell for cell in rows["0"][2:6])
+    # Whole 10-step rollouts (nothing stopped), and the GNS against constant velocity over them.
+    row_runs = [r for r in collect(load_sweep(path), "smoke") if r.planned.axes["train.noise_std"] == 0.0]
+    assert len(row_runs) == 2
+    assert rows["0"][6] == "10"
+    expected = np.mean([r.metric("rollout_mse") for r in row_runs]) / np.mean(
+        [r.metric("baseline_cv_rollout_mse") for r in row_runs])
+    assert rows["0"][7] == f"{expected:.3g}x"
+    assert "cover different steps" not in text
     runs = tracking.search_sweep_runs("sweep:ablation-noise_std", "smoke")
     assert len(runs) == 4 and all(f"`{r.run_id}`" in text for r in runs)
     missing_runs = [line for line in text.splitlines() if line.startswith("| noise_std=0.001-seed")]
@@ -252,3 +260,25 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
     # with the baseline over the steps before the stop, stopped runs compare too; the paper ratio is marked
     stopped = domain_row(goop, [row(1.0, 4.0, stopped=0.2, same_steps=0.5)])
     assert "| 4 (2x over the steps before the stops) |" in stopped and "x (stopped rollouts) |" in stopped
+
+
+def test_ablation_table_compares_stopped_runs_with_constant_velocity_over_their_own_steps(tmp_path: Path) -> None:
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import ablation_section
+
+    sweep = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml")
+    planned = {r.axes["train.noise_std"]: r for r in sweep.plan("smoke")}
+
+    def row(value: float, rollout: float, same_steps: float, steps: float, stopped: float) -> RunRow:
+        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": 9.0, "test/one_step_mse": 1e-8,
+                   "test/baseline_cv_same_steps_mse": same_steps, "test/rollout_steps": steps,
+                   "test/rollout_stopped": stopped, "test/ot": 1e-3, "test/mmd": 1e-2}
+        return RunRow(planned[value], tracking.RunRecord("r", "n", "FINISHED", 0, {"train.steps": "20"}, metrics))
+
+    # noise 0 covers fewer steps with a lower MSE, but is worse than constant velocity over those steps
+    text = "\n".join(ablation_section(sweep, [row(0.0, 0.1, 0.05, 40, 0.8), row(3e-4, 0.3, 0.6, 100, 0.0)],
+                                      tmp_path))
+    rows = {r[0]: r for r in table_rows(text, "0") + table_rows(text, "0.0003")}
+    assert rows["0"][6:] == ["40 (80% stopped)", "2x"]
+    assert rows["0.0003"][6:] == ["100", "0.5x"]
+    assert "cover different steps" in text
