@@ -105,20 +105,31 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="one-step and rollout MSE of a checkpoint on a split, tracked in MLflow")
     p.add_argument("checkpoint", type=Path, help="checkpoint file or run directory")
     p.add_argument("dataset", type=Path)
-    p.add_argument("--split", default="test", choices=["valid", "test"])
+    p.add_argument("--split", default=None, choices=["valid", "test"], help="default: test")
     p.add_argument("--max-trajectories", type=int, default=None)
     p.add_argument("--rollout-steps", type=int, default=None)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--experiment", default="gns-bench")
     p.add_argument("--device", default="auto")
+    p.add_argument("--into", metavar="RUN_ID", default=None,
+                   help="evaluate the run directory's final checkpoint again into the MLflow run that trained it, "
+                        "with that run's evaluation settings (changed only by the options given), as "
+                        "`sweep --reevaluate` does for the runs a sweep plans")
+    p.add_argument("--reason", default="gns-bench evaluate --into", help="with --into: tag 'reevaluated' says why")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
     from gns_bench.config import EvalConfig
-    from gns_bench.pipeline import evaluate_run
+    from gns_bench.pipeline import evaluate_run, reevaluate_run, trained_eval_config
 
-    eval_config = EvalConfig(split=args.split, max_trajectories=args.max_trajectories,
-                             rollout_steps=args.rollout_steps)
+    changes = {name: value for name, value in (("split", args.split), ("max_trajectories", args.max_trajectories),
+                                               ("rollout_steps", args.rollout_steps)) if value is not None}
+    if args.into:
+        eval_config = trained_eval_config(args.checkpoint, **changes)
+        _print_summary(reevaluate_run(args.into, args.dataset, args.checkpoint, eval_config, reason=args.reason,
+                                      device=args.device))
+        return
+    eval_config = EvalConfig(**{"split": "test", **changes})
     eval_config.validate()
     _print_summary(evaluate_run(args.checkpoint, args.dataset, eval_config, out_dir=args.out,
                                 experiment=args.experiment, device=args.device))

@@ -6,14 +6,14 @@ import csv
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gns_bench import tracking
-from gns_bench.config import Config, EvalConfig
+from gns_bench.config import Config, EvalConfig, config_from_dict
 from gns_bench.data.format import load_split, read_metadata
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
@@ -209,6 +209,16 @@ def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: E
                               bounds=data_meta.bounds)  # the scene's walls (a larger arena than in training)
         _log_evaluation(run, evaluation, out_dir, data_meta.bounds, eval_config.split)
         return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
+
+
+def trained_eval_config(out_dir: str | Path, **changes: Any) -> EvalConfig:
+    """The evaluation settings a run directory's training was given (its `config.json`), with `changes`."""
+    path = Path(out_dir) / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: not a run directory (training writes config.json there)")
+    eval_config = replace(config_from_dict(json.loads(path.read_text()), str(path)).eval, **changes)
+    eval_config.validate()
+    return eval_config
 
 
 def reevaluate_run(run_id: str, dataset_dir: str | Path, out_dir: str | Path, eval_config: EvalConfig, *,

@@ -413,6 +413,18 @@ def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_
     with pytest.raises(ValueError, match="belongs to MLflow run"):
         reevaluate_run("0" * 32, tmp_path / "data", out_dir, planned.config.eval, reason="wrong run")
 
+    # The same from the command line, for a run no sweep plans any more: into the run that trained the
+    # checkpoint, with that run's own evaluation settings (1 trajectory at the smoke tier, where the command's
+    # plain `evaluate` would take every test trajectory)
+    from gns_bench.data.generate import dataset_path
+
+    dataset = dataset_path(planned.domain, planned.dataset_tier, planned.dataset_seed, tmp_path / "data")
+    assert main(["evaluate", str(out_dir), str(dataset), "--into", source.info.run_id, "--reason", "by hand"]) == 0
+    again = client.get_run(source.info.run_id)
+    assert "by hand" in again.data.tags["reevaluated"] and again.data.metrics["test/num_trajectories"] == 1
+    assert len(client.get_metric_history(source.info.run_id, "test/rollout_mse")) == 3
+    assert main(["evaluate", str(tmp_path), str(dataset), "--into", source.info.run_id]) == 2  # no config.json
+
     assert main(["sweep", str(abl_path), "--reevaluate", *roots]) == 0
     (new_copy,) = runs_of("sweep:test-rabl")
     assert new_copy.info.run_id != old_copy.info.run_id and new_copy.data.tags["shared_from"] == source.info.run_id
