@@ -110,6 +110,7 @@ for _path in sorted(Path("sweeps").rglob("*.toml")):
     if _path.name == "tiers.toml":
         continue
     _folder = _path.parent.name if _path.parent != Path("sweeps") else ""
-    _prefix = SWEEP_PREFIXES.get(_folder, _folder.removesuffix("s"))
+    _plain = _folder[:-1] if _folder.endswith("s") and not _folder.endswith("ss") else _folder
+    _prefix = SWEEP_PREFIXES.get(_folder, _plain)
     _name = f"{_prefix}-{_path.stem}" if _prefix else _path.stem
     nox.session(name=_name, venv_backend="none")(_sweep_session(_path))

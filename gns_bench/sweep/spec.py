@@ -24,7 +24,7 @@ from gns_bench.config import Config, ConfigError, config_from_dict
 TIERS = ("smoke", "small", "paper")
 SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 TIERS_FILE = "tiers.toml"
-# sweeps/<folder>/<file>.toml is named <prefix>-<file>; a folder not listed here loses a final 's'.
+# sweeps/<folder>/<file>.toml is named <prefix>-<file>; a folder not listed here loses a final 's' (not 'ss').
 # noxfile.py keeps a copy (it runs before gns_bench is installed); a test checks that the two agree.
 SWEEP_PREFIXES = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
 _SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "tiers", "paper_figure"}
@@ -192,7 +192,8 @@ def sweep_name(path: Path, sweeps_dir: Path = SWEEPS_DIR) -> str:
     except ValueError:
         return path.stem
     folder = relative.parts[0] if len(relative.parts) > 1 else ""
-    prefix = SWEEP_PREFIXES.get(folder, folder.removesuffix("s"))  # tests -> test
+    plain = folder[:-1] if folder.endswith("s") and not folder.endswith("ss") else folder  # tests -> test
+    prefix = SWEEP_PREFIXES.get(folder, plain)
     return f"{prefix}-{path.stem}" if prefix else path.stem
 
 
