@@ -142,9 +142,9 @@ def budget_statement(rows: list[RunRow]) -> str:
     text = (f"Budget: at most {steps:,} training steps per run, {100 * fraction:.2g}% of the paper's {paper:,} "
             f"(batch 2). ")
     if fraction < 0.01:
-        text += ("That is far below the paper's budget, so our errors are expected to be much higher than its "
-                 "figures; at this budget the numbers check that the pipeline runs end to end, not that the "
-                 "paper's accuracy is reproduced. ")
+        text += ("That is far below the paper's budget, so gaps to its figures are expected; a number at or "
+                 "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and does "
+                 "not show that its accuracy is reproduced. ")
     elif fraction < 1:
         text += "Remaining gaps to the paper are expected from the shorter training and smaller datasets. "
     capped = sorted({r.param("eval.rollout_steps") for r in done} - {"", "None"}, key=float)
