@@ -45,12 +45,23 @@ class ProcessGroup:
         with the GIL held: its destructor joins a gloo worker thread that waits for the GIL, and the rank
         hangs for good. That hung a CI run; 2-rank teardowns in the old order hung within 8 to 19 cycles in each
         of 3 tries, and in this order ran 200 of 200 in each of 3.
+
+        On gloo the wait is a `monitored_barrier` (send/recv), not `barrier`. A gloo `barrier` keeps every
+        collective still in flight alive until it completes, among them DDP's last allreduce, which captured
+        a Python object in its thread-local state during backward. A worker thread then frees that allreduce
+        after the barrier returns; on a loaded machine that came after interpreter shutdown had begun, and
+        the freeing thread's GIL request aborted the rank ("terminate called without an active exception";
+        the core showed ~AsyncBarrierWork -> ~AsyncAllreduceWork -> SafePyObject decref). It failed a CI
+        run and 2 of 76 teardowns while a training run shared the cores.
         """
         if any(ref() is not None for ref in self._wrapped):
             raise RuntimeError("ProcessGroup.close(): a DistributedDataParallel wrapper from wrap() is still "
                                "alive; drop every reference to it (del model) first, or its teardown deadlocks")
         if self.owns_group and dist.is_initialized():
-            dist.barrier()
+            if dist.get_backend() == "gloo":
+                dist.monitored_barrier()
+            else:
+                dist.barrier()
             dist.destroy_process_group()
             self.owns_group = False
 
