@@ -336,7 +336,7 @@ def cmd_stress(args: argparse.Namespace) -> None:
 def _print_summary(summary) -> None:
     print(f"MLflow run: {summary.run_id}")
     print(f"run directory: {summary.out_dir.resolve()}")
-    for key in ("one_step_mse", "rollout_mse", "baseline_cv_rollout_mse"):
+    for key in ("one_step_mse", "one_step_mse_moving", "rollout_mse", "rollout_mse_moving", "baseline_cv_rollout_mse"):
         if key in summary.metrics:
             print(f"  {key:24s} {summary.metrics[key]:.4g}")
 

@@ -31,7 +31,19 @@ class ModelConfig:
     mlp_hidden_size: int = 128
     shared_processor: bool = False  # the paper's default is unshared GN blocks
     position_encoding: Literal["relative", "absolute"] = "relative"
-    self_edges: bool = False
+    # What a node sums over its incoming edges (network.py): the edge MLP's outputs, as graph_nets'
+    # InteractionNetwork in the release does, or the residual-updated edges e + phi_e (gns-bench before #17).
+    aggregate: Literal["messages", "updated_edges"] = "messages"
+    # Initial weights: Sonnet 1.x's, as the release built its MLPs (truncated normal of std 1/sqrt(fan_in),
+    # zero biases; the type embedding Glorot-uniform, tf.get_variable's default), or PyTorch's defaults.
+    init: Literal["sonnet", "torch"] = "sonnet"
+    self_edges: bool = True  # the release's radius graph keeps i -> i (connectivity_utils, add_self_edges)
+    # The release embeds the particle type for every dataset (train.py fixes 9 types, so its
+    # `num_particle_types > 1` test always holds); "multiple_types" skips it for single-type datasets.
+    type_embedding: Literal["always", "multiple_types"] = "always"
+    # The release gives every particle its clipped distances to the bounds (App. B.2); "walls_only" gives
+    # them only where the dataset's metadata says the bounds are walls (FLUIDSHAKE's container moves).
+    wall_features: Literal["always", "walls_only"] = "always"
     global_latent: bool = False  # a global latent updated per GN block (ablation, App. C.1)
     gravity_bias: bool = False  # add the dataset's known gravity to the decoder output (ablation)
     linear_encoder_decoder: bool = False  # linear instead of MLP encoder/decoder (ablation)
@@ -187,6 +199,21 @@ class Config:
         """Dotted keys, as logged to MLflow params."""
         return {f"{section}.{key}": value for section, values in self.to_dict().items()
                 for key, value in values.items()}
+
+
+# Model fields added after checkpoints were first written, with the value that rebuilds an older model
+# exactly: a config saved before the field existed was trained with this value (see `saved_config`).
+LEGACY_MODEL_VALUES: dict[str, Any] = {"aggregate": "updated_edges", "init": "torch",
+                                       "type_embedding": "multiple_types", "wall_features": "walls_only"}
+
+
+def saved_config(data: dict[str, Any], source: str) -> Config:
+    """A config read back from a checkpoint or a run: fields it predates take the values its model was
+    built with (LEGACY_MODEL_VALUES), not today's defaults, so an old checkpoint loads as what it was."""
+    model = dict(data.get("model", {}))
+    for key, value in LEGACY_MODEL_VALUES.items():
+        model.setdefault(key, value)
+    return config_from_dict({**data, "model": model}, source)
 
 
 def _require(condition: bool, key: str, message: str) -> None:

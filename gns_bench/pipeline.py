@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from gns_bench import tracking
-from gns_bench.config import Config, EvalConfig, config_from_dict
+from gns_bench.config import Config, EvalConfig, saved_config
 from gns_bench.data.format import load_split, read_metadata
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
@@ -216,7 +216,7 @@ def trained_eval_config(out_dir: str | Path, **changes: Any) -> EvalConfig:
     path = Path(out_dir) / "config.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not a run directory (training writes config.json there)")
-    eval_config = replace(config_from_dict(json.loads(path.read_text()), str(path)).eval, **changes)
+    eval_config = replace(saved_config(json.loads(path.read_text()), str(path)).eval, **changes)
     eval_config.validate()
     return eval_config
 

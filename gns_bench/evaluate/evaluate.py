@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -62,34 +63,48 @@ def distributional_metrics(result: RolloutResult, config: EvalConfig, radius: fl
     return values, method
 
 
+class OneStepMSE(NamedTuple):
+    """One-step position MSE under the two definitions evaluation logs (see `one_step_mse`)."""
+
+    all_particles: float  # the release's `one_step_position_mse`: what the paper's table reports
+    moving: float  # kinematic particles left out
+
+
 @torch.no_grad()
 def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_windows: int | None = None,
-                 device: torch.device | str = "cpu", precision: str = "fp32") -> float:
-    """Mean over windows, moving particles and dims of (predicted - true next position)^2, no noise;
-    the network in `precision` (fp32, bf16 autocast, or the fp64 reference)."""
+                 device: torch.device | str = "cpu", precision: str = "fp32") -> OneStepMSE:
+    """Mean of (predicted - true next position)^2 over windows, particles and dims, no input noise; the
+    network in `precision` (fp32, bf16 autocast, or the fp64 reference).
+
+    `all_particles` is the release's definition (train.py, `one_step_position_mse`: one mean over every
+    particle of every evaluated window, kinematic particles' unconstrained predictions included); `moving`
+    leaves kinematic particles out."""
     with network_dtype(simulator, dtype_of(precision)):
         return _one_step_mse(simulator, trajectory, max_windows, device, precision)
 
 
 def _one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_windows: int | None,
-                  device: torch.device | str, precision: str) -> float:
+                  device: torch.device | str, precision: str) -> OneStepMSE:
     w = simulator.config.input_sequence_length
     frames = list(range(w - 1, trajectory.num_steps - 1))
     if max_windows is not None and len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
     if trajectory.has_inflow:  # each window holds only the particles present at its last input frame
-        errors = [_one_step_errors(simulator, trajectory.select(trajectory.active(t)), [t], w, device, precision)
-                  for t in frames]
-        return sum(total for total, _ in errors) / sum(count for _, count in errors)
-    total, count = _one_step_errors(simulator, trajectory, frames, w, device, precision)
-    return total / count
+        sums = [_one_step_errors(simulator, trajectory.select(trajectory.active(t)), [t], w, device, precision)
+                for t in frames]
+        totals = np.sum(sums, axis=0)
+    else:
+        totals = np.asarray(_one_step_errors(simulator, trajectory, frames, w, device, precision))
+    total, count, moving_total, moving_count = totals
+    return OneStepMSE(total / count, moving_total / moving_count if moving_count else float("nan"))
 
 
 def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames: list[int], w: int,
-                     device: torch.device | str, precision: str = "fp32") -> tuple[float, int]:
-    """Sum and count of squared one-step errors of the moving particles over windows ending at `frames`."""
+                     device: torch.device | str, precision: str = "fp32") -> tuple[float, int, float, int]:
+    """Sum and count of squared one-step errors over windows ending at `frames`: of every particle, then
+    of the moving ones."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
-    total, count = 0.0, 0
+    total, count, moving_total, moving_count = 0.0, 0, 0.0, 0
     for start in range(0, len(frames), ONE_STEP_BATCH):
         chunk = frames[start: start + ONE_STEP_BATCH]
         batch = make_batch([trajectory], [(0, t) for t in chunk], w).to(device)
@@ -100,10 +115,25 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
                 simulator(batch.window.to(dtype), batch.particle_type, batch.batch, context).to(dtype))
         predicted = features.integrate(batch.window.to(dtype), acceleration)
         error = (predicted - batch.target).double().square().reshape(len(chunk), -1, trajectory.position.shape[2])
-        error = error[:, moving.to(error.device)]
         total += float(error.sum())
         count += error.numel()
-    return total, count
+        error = error[:, moving.to(error.device)]
+        moving_total += float(error.sum())
+        moving_count += error.numel()
+    return total, count, moving_total, moving_count
+
+
+def paper_rollout_steps(trajectory: Trajectory, window: int) -> int:
+    """Rollout steps the release scores: `sequence_length - 6` for its 6-frame windows (train.py,
+    `get_rollout_estimator_fn`), one fewer than the trajectory's T - W frames after the window."""
+    return trajectory.num_steps - window - 1
+
+
+def _paper_view(rollout: np.ndarray, truth: np.ndarray, scored: np.ndarray) -> np.ndarray:
+    """`rollout` [K, N, D] with every particle that is not scored (kinematic, or not yet in an inflow scene)
+    on its true path, as the release's rollout puts kinematic particles: their error counts as 0."""
+    keep = scored if scored.ndim > 1 else np.broadcast_to(scored, rollout.shape[:2])
+    return np.where(keep[..., None], rollout, truth)
 
 
 def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig, *,
@@ -131,16 +161,26 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             flagged.append(f"trajectory {index}: " + ", ".join(trip.reason for trip in trips))
         k = result.predicted.shape[0]
         mask = result.scored_mask(k)
-        constant_velocity = metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0])
+        truth = result.ground_truth
+        # The paper's rollout MSE, as the release computes it: the mean over its `sequence_length - 6`
+        # steps, every particle (kinematic ones follow the data: error 0) and dim. The constant-velocity
+        # baseline is scored the same way, kinematic particles on their true paths too.
+        paper_steps = min(truth.shape[0], paper_rollout_steps(traj, simulator.config.input_sequence_length))
+        kp = min(k, paper_steps)
+        constant_velocity = _paper_view(metrics.constant_velocity_rollout(result.initial_window, truth.shape[0]),
+                                        truth, result.scored_mask(truth.shape[0]))
+        one_step = one_step_mse(simulator, traj, config.one_step_windows, device)
+        nan = float("nan")
         row = {
             "trajectory": index,
-            "one_step_mse": one_step_mse(simulator, traj, config.one_step_windows, device),
-            "rollout_mse": metrics.rollout_mse(result.predicted, result.ground_truth[:k], mask) if k else float("nan"),
-            "baseline_cv_rollout_mse": metrics.rollout_mse(
-                constant_velocity, result.ground_truth, result.scored_mask(result.ground_truth.shape[0])),
+            "one_step_mse": one_step.all_particles,
+            "one_step_mse_moving": one_step.moving,
+            "rollout_mse": metrics.rollout_mse(result.predicted[:kp], truth[:kp]) if kp else nan,
+            "baseline_cv_rollout_mse": metrics.rollout_mse(constant_velocity[:paper_steps], truth[:paper_steps]),
             # over the steps the GNS rollout covered: the like-for-like baseline when a monitor stopped it
-            "baseline_cv_same_steps_mse": (metrics.rollout_mse(constant_velocity[:k], result.ground_truth[:k], mask)
-                                           if k else float("nan")),
+            "baseline_cv_same_steps_mse": metrics.rollout_mse(constant_velocity[:kp], truth[:kp]) if kp else nan,
+            # moving particles only, over every predicted step (gns-bench's definition before issue #17)
+            "rollout_mse_moving": metrics.rollout_mse(result.predicted, truth[:k], mask) if k else nan,
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),

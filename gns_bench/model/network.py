@@ -2,10 +2,17 @@
 
   encoder    v0 = eps_v(x_i), e0 = eps_e(r_ij)                         MLP + LayerNorm
   processor  M interaction-network blocks, each with its own weights (or one shared block):
-               e'_ij = e_ij + phi_e([e_ij, v_sender, v_receiver (, u)])
-               v'_i  = v_i  + phi_v([v_i, sum_{j -> i} e'_ij (, u)])
+               m_ij  = phi_e([e_ij, v_sender, v_receiver (, u)])           the message
+               e'_ij = e_ij + m_ij
+               v'_i  = v_i  + phi_v([v_i, sum_{j -> i} m_ij (, u)])
                u'    = u    + phi_u([u, mean v', mean e'])              (global-latent ablation only)
   decoder    y_i = delta_v(v_i^M)                                         MLP, no LayerNorm
+
+The node update sums the messages m_ij, as the release does: there each block is graph_nets'
+InteractionNetwork (whose node block reads the edge block's outputs) with the residuals added after it
+(graph_network.py, `_process_step`). `aggregate="updated_edges"` sums e'_ij = e_ij + m_ij instead, which is
+what gns-bench did before issue #17; checkpoints from then load with it (config.LEGACY_MODEL_VALUES).
+`sonnet_init_` gives the release's initial weights (Sonnet 1.x `Linear` and `tf.get_variable`).
 
 The first layer of phi_e is applied as per-node projections gathered per edge,
 W [e, v_s, v_r] = W_e e + (W_s v)[s] + (W_r v)[r], which is the same function as the concatenated
@@ -17,6 +24,8 @@ segment sum over receiver-sorted edges took 2.7 ms in fp32 and 7.2 ms in bf16 ag
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
@@ -37,6 +46,25 @@ def build_mlp(in_size: int, hidden_size: int, hidden_layers: int, out_size: int,
     return nn.Sequential(*layers)
 
 
+def sonnet_init_(module: nn.Module) -> nn.Module:
+    """The release's initial weights, in place, for every Linear and Embedding inside `module`.
+
+    Sonnet 1.x's `Linear` draws W from a normal of std 1/sqrt(fan_in) truncated at two stds and sets b = 0
+    (PyTorch: uniform of std 0.58/sqrt(fan_in), uniform biases); the release's type embedding is a plain
+    `tf.get_variable`, whose default is Glorot-uniform (PyTorch: N(0, 1)). LayerNorm starts at scale 1,
+    offset 0 in both. Early training speed depends on this, and CPU budgets are early training.
+    """
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            std = 1.0 / math.sqrt(layer.in_features)
+            nn.init.trunc_normal_(layer.weight, std=std, a=-2.0 * std, b=2.0 * std)
+            if layer.bias is not None:
+                nn.init.zeros_(layer.bias)
+        elif isinstance(layer, nn.Embedding):
+            nn.init.xavier_uniform_(layer.weight)
+    return module
+
+
 def aggregate(edges: torch.Tensor, receivers: torch.Tensor, num_nodes: int) -> torch.Tensor:
     """Sum of incoming edge latents per node."""
     return edges.new_zeros(num_nodes, edges.shape[1]).index_add_(0, receivers, edges)
@@ -46,10 +74,11 @@ class InteractionNetwork(nn.Module):
     """One GN block with residual edge and node updates and sum aggregation (no global, unless asked)."""
 
     def __init__(self, latent_size: int, hidden_size: int, hidden_layers: int, global_latent: bool,
-                 updates_globals: bool = True):
+                 updates_globals: bool = True, aggregate_messages: bool = True):
         super().__init__()
         g = latent_size if global_latent else 0
         self.latent_size = latent_size
+        self.aggregate_messages = aggregate_messages  # False: sum the updated edges e + m (see module doc)
         self.global_latent = global_latent
         self.edge_mlp = build_mlp(3 * latent_size + g, hidden_size, hidden_layers, latent_size,
                                   layer_norm=True)
@@ -81,8 +110,9 @@ class InteractionNetwork(nn.Module):
         if self.global_latent:
             node_globals = globals_.index_select(0, node_graph)
             edge_globals = node_globals.index_select(0, edge_index[1])
-        new_edges = edges + self.edge_update(nodes, edges, edge_index, edge_globals)
-        aggregated = aggregate(new_edges, edge_index[1], nodes.shape[0])
+        messages = self.edge_update(nodes, edges, edge_index, edge_globals)
+        new_edges = edges + messages
+        aggregated = aggregate(messages if self.aggregate_messages else new_edges, edge_index[1], nodes.shape[0])
         node_inputs = [nodes, aggregated] + ([node_globals] if self.global_latent else [])
         new_nodes = nodes + self.node_mlp(torch.cat(node_inputs, dim=1))
         new_globals = globals_
@@ -99,7 +129,7 @@ class EncodeProcessDecode(nn.Module):
     def __init__(self, node_in: int, edge_in: int, out_size: int, *, latent_size: int = 128,
                  hidden_size: int = 128, hidden_layers: int = 2, message_passing_steps: int = 10,
                  shared_processor: bool = False, global_latent: bool = False, global_in: int = 0,
-                 linear_encoder_decoder: bool = False):
+                 linear_encoder_decoder: bool = False, aggregate: str = "messages"):
         super().__init__()
         if linear_encoder_decoder:
             self.node_encoder: nn.Module = nn.Linear(node_in, latent_size)
@@ -115,18 +145,23 @@ class EncodeProcessDecode(nn.Module):
             self.global_encoder = (build_mlp(global_in, hidden_size, hidden_layers, latent_size,
                                              layer_norm=True) if global_in else None)
             self.global_constant = nn.Parameter(torch.zeros(latent_size)) if not global_in else None
+        if aggregate not in ("messages", "updated_edges"):
+            raise ValueError(f"aggregate: expected 'messages' or 'updated_edges', got {aggregate!r}")
+        aggregate_messages = aggregate == "messages"
         if message_passing_steps == 0:  # M = 0: a per-particle MLP, edges play no part
             self.processor = nn.ModuleList()
             self.schedule = []
         elif shared_processor:
             self.processor = nn.ModuleList(
-                [InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent)])
+                [InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent,
+                                    aggregate_messages=aggregate_messages)])
             self.schedule = [0] * message_passing_steps
         else:
             # The last block's global update would feed nothing (the decoder reads nodes): not built.
             self.processor = nn.ModuleList(
                 InteractionNetwork(latent_size, hidden_size, hidden_layers, global_latent,
-                                   updates_globals=step < message_passing_steps - 1)
+                                   updates_globals=step < message_passing_steps - 1,
+                                   aggregate_messages=aggregate_messages)
                 for step in range(message_passing_steps))
             self.schedule = list(range(message_passing_steps))
 

@@ -13,7 +13,7 @@ from gns_bench.config import ConfigError, ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, NUM_PARTICLE_TYPES, Metadata
 from gns_bench.model import features
 from gns_bench.model.neighbours import radius_graph
-from gns_bench.model.network import EncodeProcessDecode
+from gns_bench.model.network import EncodeProcessDecode, sonnet_init_
 
 CONTEXT_STD_FLOOR = 1e-8
 
@@ -24,10 +24,11 @@ class LearnedSimulator(nn.Module):
         self.config = config
         self.dim = metadata.dim
         self.radius = float(config.connectivity_radius or metadata.default_connectivity_radius)
-        self.use_walls = bool(metadata.walls)
-        # A type embedding only when the dataset has more than one type (an import that does not know
-        # its types gets one, to be safe).
-        self.use_type_embedding = metadata.num_particle_types != 1
+        # The release gives every particle its wall distances and a type embedding (model.wall_features,
+        # model.type_embedding); the other settings follow the dataset (an import that does not know its
+        # types counts as several).
+        self.use_walls = config.wall_features == "always" or bool(metadata.walls)
+        self.use_type_embedding = config.type_embedding == "always" or metadata.num_particle_types != 1
         self.context_size = metadata.context_size
         self.absolute = config.position_encoding == "absolute"
 
@@ -61,7 +62,10 @@ class LearnedSimulator(nn.Module):
             node_in, edge_in, self.dim, latent_size=config.latent_size, hidden_size=config.mlp_hidden_size,
             hidden_layers=config.mlp_hidden_layers, message_passing_steps=config.message_passing_steps,
             shared_processor=config.shared_processor, global_latent=config.global_latent,
-            global_in=self.context_size, linear_encoder_decoder=config.linear_encoder_decoder)
+            global_in=self.context_size, linear_encoder_decoder=config.linear_encoder_decoder,
+            aggregate=config.aggregate)
+        if config.init == "sonnet":
+            sonnet_init_(self)
 
     @property
     def normalisation(self) -> features.Normalisation:

@@ -145,8 +145,8 @@ def precision(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], p
         for i, r in enumerate(results[name]):
             out.trips += _trip(name, i, r)
     for name in precisions:
-        out.metrics[f"one_step_mse_{name}"] = float(np.mean([
-            one_step_mse(simulator, t, ONE_STEP_WINDOWS, device, name) for t in trajectories]))
+        out.metrics[f"one_step_mse_{name}"] = float(np.mean([  # moving particles, as the rollout curves
+            one_step_mse(simulator, t, ONE_STEP_WINDOWS, device, name).moving for t in trajectories]))
         out.curves[f"mse_{name}"] = _stack([per_step_mse(r, length) for r in results[name]])
         out.metrics[f"rollout_mse_{name}"] = float(np.nanmean(out.curves[f"mse_{name}"]))
         out.metrics[f"seconds_{name}"] = seconds[name]

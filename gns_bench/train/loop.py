@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from gns_bench.config import Config, TrainConfig, config_from_dict
+from gns_bench.config import Config, TrainConfig, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.model.features import acceleration_from_next_position
@@ -111,7 +111,7 @@ def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path
     if saved["metadata"].get("content_hash") != metadata.content_hash:
         raise ValueError(f"{path}: checkpoint was trained on dataset {saved['metadata'].get('content_hash')}, "
                          f"not {metadata.content_hash}")
-    old = config_from_dict(saved["config"], str(path))
+    old = saved_config(saved["config"], str(path))
     if old.model != config.model:
         raise ValueError(f"{path}: model config differs from the checkpoint's; cannot resume")
     changed = {f.name for f in dataclasses.fields(TrainConfig)
@@ -215,7 +215,7 @@ def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
                    ) -> tuple[LearnedSimulator, Config, Metadata]:
     """Rebuild a trained simulator from its checkpoint (config and normalisation travel with it)."""
     saved = load_checkpoint(checkpoint, device)
-    config = config_from_dict(saved["config"], str(checkpoint))
+    config = saved_config(saved["config"], str(checkpoint))
     metadata = Metadata.from_json(saved["metadata"], f"{checkpoint} (metadata)")
     simulator = build_simulator(config, metadata).to(device)
     simulator.load_state_dict(saved["model"])

@@ -91,3 +91,39 @@ def test_static_edge_reuse_changes_nothing(untrained: LearnedSimulator, tiny_dat
     reused = rollout(untrained, traj, 20)
     fresh = rollout(untrained, traj, 20, reuse_static_edges=False)
     np.testing.assert_array_equal(reused.predicted, fresh.predicted)
+
+
+def test_paper_and_moving_mse_definitions_by_hand(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
+    """The release's definitions (train.py): rollout MSE over `sequence_length - 6` steps and every particle
+    (kinematic ones, on their true paths, add 0), one-step MSE over every particle of every window
+    (kinematic ones with their unconstrained predictions); the `_moving` figures leave kinematic particles
+    out, the rollout one over all T - 6 predicted steps."""
+    from gns_bench.config import EvalConfig
+    from gns_bench.evaluate.evaluate import evaluate
+
+    traj = load_split(tiny_dataset, "test")[0]
+    kinematic = traj.particle_type == 3
+    n_all, n_moving = traj.num_particles, int((~kinematic).sum())
+    assert 0 < n_moving < n_all
+    evaluation = evaluate(untrained, [traj], EvalConfig(distribution_steps=0, monitors=False), progress=False)
+    row = evaluation.per_trajectory[0]
+    predicted, truth = evaluation.rollouts[0].predicted.astype(np.float64), traj.position[6:].astype(np.float64)
+    seq = read_metadata(tiny_dataset).sequence_length
+    assert traj.num_steps == seq + 1 and predicted.shape[0] == seq - 5
+    error = np.square(predicted - truth)  # [T - 6, N, D]; kinematic rows are exactly 0
+    assert not error[:, kinematic].any()
+    paper = error[: seq - 6].sum() / ((seq - 6) * n_all * 2)
+    moving = error[:, ~kinematic].sum() / ((seq - 5) * n_moving * 2)
+    assert row["rollout_mse"] == pytest.approx(paper, rel=1e-9)
+    assert row["rollout_mse_moving"] == pytest.approx(moving, rel=1e-9)
+    # one step: every window ending at frames 5 .. T-2, predicted one by one from the clean window
+    squares = []
+    with torch.no_grad():
+        for t in range(5, traj.num_steps - 1):
+            window = torch.from_numpy(traj.position[t - 5: t + 1]).transpose(0, 1)
+            nxt = untrained.predict_next_position(window, torch.from_numpy(traj.particle_type))
+            squares.append(np.square(nxt.double().numpy() - traj.position[t + 1].astype(np.float64)))
+    squares = np.stack(squares)  # [windows, N, D]
+    assert squares[:, kinematic].mean() > 0  # kinematic particles' own predictions count
+    assert row["one_step_mse"] == pytest.approx(squares.mean(), rel=1e-5)
+    assert row["one_step_mse_moving"] == pytest.approx(squares[:, ~kinematic].mean(), rel=1e-5)

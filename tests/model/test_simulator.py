@@ -39,7 +39,9 @@ def window(n: int = 40, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
 @pytest.mark.parametrize("encoding, invariant", [("relative", True), ("absolute", False)])
 def test_translation_invariance(encoding: str, invariant: bool) -> None:
     torch.manual_seed(0)
-    sim = LearnedSimulator(ModelConfig(**SMALL, position_encoding=encoding), metadata(walls=False), 3e-4)
+    # without wall features: they see the bounds, which a shift moves the particles towards
+    config = ModelConfig(**SMALL, position_encoding=encoding, wall_features="walls_only")
+    sim = LearnedSimulator(config, metadata(walls=False), 3e-4)
     w, types = window()
     shift = torch.tensor([0.13, -0.07])
     with torch.no_grad():
@@ -108,17 +110,21 @@ def test_split_edge_layer_equals_concatenation() -> None:
                                rtol=1e-5, atol=1e-5)
 
 
-def test_feature_sizes_follow_the_scene() -> None:
-    """No wall features without walls, no type embedding with one type, context only with context."""
-    base = LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True), 0.0)
-    first = base.network.node_encoder[0].in_features
-    assert first == 5 * 2 + 4 + 16
-    assert LearnedSimulator(ModelConfig(**SMALL), metadata(walls=False, types=1), 0.0
-                            ).network.node_encoder[0].in_features == 10
-    assert LearnedSimulator(ModelConfig(**SMALL), metadata(walls=False, types=1, context=1), 0.0
-                            ).network.node_encoder[0].in_features == 11
-    assert not hasattr(LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True, types=1), 0.0),
-                       "type_embedding")
+def test_feature_sizes_follow_the_release_or_the_scene() -> None:
+    """The release's defaults: wall distances and a type embedding for every dataset. With
+    `wall_features="walls_only"` and `type_embedding="multiple_types"`: no wall features without walls, no
+    type embedding with one type. Context only with context."""
+    def node_in(config: ModelConfig, meta: Metadata) -> int:
+        return LearnedSimulator(config, meta, 0.0).network.node_encoder[0].in_features
+
+    release = ModelConfig(**SMALL)
+    assert node_in(release, metadata(walls=True)) == 5 * 2 + 4 + 16
+    assert node_in(release, metadata(walls=False, types=1)) == 5 * 2 + 4 + 16
+    by_scene = ModelConfig(**SMALL, wall_features="walls_only", type_embedding="multiple_types")
+    assert node_in(by_scene, metadata(walls=True)) == 5 * 2 + 4 + 16
+    assert node_in(by_scene, metadata(walls=False, types=1)) == 10
+    assert node_in(by_scene, metadata(walls=False, types=1, context=1)) == 11
+    assert not hasattr(LearnedSimulator(by_scene, metadata(walls=True, types=1), 0.0), "type_embedding")
 
 
 def test_normalisation_adds_noise_in_quadrature() -> None:
@@ -130,8 +136,9 @@ def test_normalisation_adds_noise_in_quadrature() -> None:
 ABLATIONS = [
     {"message_passing_steps": 0}, {"message_passing_steps": 1}, {"shared_processor": True},
     {"position_encoding": "absolute"}, {"mlp_hidden_layers": 1}, {"mlp_hidden_layers": 3}, {"latent_size": 16},
-    {"self_edges": True}, {"global_latent": True}, {"gravity_bias": True}, {"linear_encoder_decoder": True},
-    {"connectivity_radius": 0.1},
+    {"self_edges": False}, {"global_latent": True}, {"gravity_bias": True}, {"linear_encoder_decoder": True},
+    {"connectivity_radius": 0.1}, {"aggregate": "updated_edges"}, {"init": "torch"},
+    {"type_embedding": "multiple_types"}, {"wall_features": "walls_only"},
 ]
 
 
@@ -166,3 +173,82 @@ def test_gravity_bias_needs_gravity() -> None:
 
     with pytest.raises(ConfigError, match="gravity"):
         LearnedSimulator(dataclasses.replace(ModelConfig(**SMALL), gravity_bias=True), metadata(True), 0.0)
+
+
+def _fixed_block(latent: int, aggregate_messages: bool) -> InteractionNetwork:
+    """A block with MLPs of one hidden layer and weights set by formula, not by a random draw."""
+    block = InteractionNetwork(latent, 4, 1, global_latent=False, aggregate_messages=aggregate_messages)
+    with torch.no_grad():
+        for index, parameter in enumerate(block.parameters()):
+            values = torch.arange(parameter.numel(), dtype=torch.float32).reshape(parameter.shape)
+            parameter.copy_(torch.sin(values * 0.7 + index))
+    return block
+
+
+def _mlp_by_hand(mlp: torch.nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """Linear, ReLU, Linear, LayerNorm written out."""
+    first, second, norm = mlp[0], mlp[2], mlp[3]
+    h = torch.relu(x @ first.weight.T + first.bias) @ second.weight.T + second.bias
+    h = (h - h.mean(1, keepdim=True)) / torch.sqrt(h.var(1, unbiased=False, keepdim=True) + norm.eps)
+    return h * norm.weight + norm.bias
+
+
+@pytest.mark.parametrize("aggregate_messages", [True, False])
+def test_processor_block_matches_both_aggregations_by_hand(aggregate_messages: bool) -> None:
+    """A 3-node graph, edges 0->1, 2->1, 1->0, 1->1: the release's block sums the messages m = phi_e(...)
+    over incoming edges (graph_nets' InteractionNetwork, residuals added after it); the legacy form sums
+    the updated edges e + m. The two differ, and the network computes the one asked for."""
+    latent = 3
+    nodes = torch.tensor([[0.5, -1.0, 0.2], [2.0, 0.3, -0.4], [-0.7, 1.1, 0.8]])
+    edges = torch.tensor([[0.2, 0.4, -0.5], [-1.0, 0.6, 0.3], [0.9, -0.3, 0.0], [0.1, 0.1, 1.2]])
+    edge_index = torch.tensor([[0, 2, 1, 1], [1, 1, 0, 1]])
+    block = _fixed_block(latent, aggregate_messages)
+    senders, receivers = edge_index
+    messages = _mlp_by_hand(block.edge_mlp, torch.cat([edges, nodes[senders], nodes[receivers]], dim=1))
+    summed_messages = torch.stack([messages[receivers == i].sum(0) for i in range(3)])
+    summed_updated = torch.stack([(edges + messages)[receivers == i].sum(0) for i in range(3)])
+    by_hand = {True: nodes + _mlp_by_hand(block.node_mlp, torch.cat([nodes, summed_messages], dim=1)),
+               False: nodes + _mlp_by_hand(block.node_mlp, torch.cat([nodes, summed_updated], dim=1))}
+    with torch.no_grad():
+        new_nodes, new_edges, _ = block(nodes, edges, edge_index)
+    torch.testing.assert_close(new_edges, edges + messages, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(new_nodes, by_hand[aggregate_messages], rtol=1e-5, atol=1e-5)
+    assert (by_hand[True] - by_hand[False]).abs().max() > 0.1  # the test tells the two forms apart
+
+
+def test_release_initialisation() -> None:
+    """Sonnet 1.x's Linear: weights from N(0, 1/fan_in) truncated at 2 std (std 0.88/sqrt(fan_in)), zero
+    biases; the type embedding Glorot-uniform. PyTorch's defaults (`init="torch"`) differ measurably."""
+    torch.manual_seed(0)
+    sim = LearnedSimulator(ModelConfig(), metadata(walls=True), 3e-4)  # the paper's size: 128-wide MLPs
+    linears = [m for m in sim.modules() if isinstance(m, torch.nn.Linear)]
+    assert len(linears) == 3 * (2 + 2 * 10) + 3  # encoders, 10 blocks of two MLPs, decoder
+    for layer in linears:
+        weight, bound = layer.weight.detach(), 2.0 / layer.in_features**0.5
+        assert float(weight.abs().max()) <= bound and torch.all(layer.bias == 0)
+        ratio = float(weight.std()) * layer.in_features**0.5
+        assert 0.8 < ratio < 0.96, ratio  # 0.880 for a normal truncated at two standard deviations
+    table = sim.type_embedding.weight.detach()
+    glorot = (6.0 / sum(table.shape)) ** 0.5
+    assert float(table.abs().max()) <= glorot and float(table.std()) == pytest.approx(glorot / 3**0.5, rel=0.15)
+    torch_sim = LearnedSimulator(ModelConfig(init="torch"), metadata(walls=True), 3e-4)
+    first = torch_sim.network.processor[0].edge_mlp[0]
+    assert float(first.bias.detach().abs().max()) > 0 and float(torch_sim.type_embedding.weight.detach().std()) > 0.8
+
+
+def test_a_config_saved_before_the_release_switches_rebuilds_the_old_model() -> None:
+    """A checkpoint's config written before `aggregate`, `init`, `type_embedding` and `wall_features`
+    existed loads with the values its model was trained with, not today's defaults."""
+    from gns_bench.config import Config, saved_config
+
+    old = Config().to_dict()
+    for key in ("aggregate", "init", "type_embedding", "wall_features"):
+        del old["model"][key]
+    old["model"]["self_edges"] = False  # written out by every older config
+    config = saved_config(old, "old checkpoint")
+    assert (config.model.aggregate, config.model.init, config.model.type_embedding, config.model.wall_features) \
+        == ("updated_edges", "torch", "multiple_types", "walls_only")
+    assert saved_config(Config().to_dict(), "new checkpoint").model == ModelConfig()
+    old_sim = LearnedSimulator(dataclasses.replace(config.model, **SMALL), metadata(walls=False, types=1), 0.0)
+    assert not hasattr(old_sim, "type_embedding") and old_sim.network.node_encoder[0].in_features == 10
+    assert not old_sim.network.processor[0].aggregate_messages
