@@ -150,10 +150,11 @@ def cmd_rollout(args: argparse.Namespace) -> None:
     import numpy as np
 
     from gns_bench.data.format import load_split
+    from gns_bench.devices import resolve_device
     from gns_bench.evaluate import metrics
     from gns_bench.evaluate.plots import plot_rollout
     from gns_bench.evaluate.rollout import rollout
-    from gns_bench.train.loop import load_simulator, resolve_device
+    from gns_bench.train.checkpoints import load_simulator
 
     device = resolve_device(args.device)
     simulator, config, _ = load_simulator(args.checkpoint, device)

@@ -49,7 +49,9 @@ class ModelConfig:
     linear_encoder_decoder: bool = False  # linear instead of MLP encoder/decoder (ablation)
     particle_type_embedding_size: int = 16
     input_sequence_length: int = 6  # positions in the input window: C = 5 velocities
-    connectivity_radius: float | None = None  # R; None takes the dataset's default_connectivity_radius
+    # R; None: the dataset's default_connectivity_radius, filled in by `resolve_for_dataset` where the
+    # dataset is opened, so runs log and checkpoint the number
+    connectivity_radius: float | None = None
     neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
 
     def validate(self) -> None:
@@ -199,6 +201,16 @@ class Config:
         """Dotted keys, as logged to MLflow params."""
         return {f"{section}.{key}": value for section, values in self.to_dict().items()
                 for key, value in values.items()}
+
+
+def resolve_for_dataset(config: Config, default_connectivity_radius: float) -> Config:
+    """`config` with its dataset-dependent defaults filled in, so what is logged, keyed and checkpointed holds
+    plain numbers: an unset `model.connectivity_radius` becomes the dataset's R (Sec. 2 / App. B.2; metadata's
+    `default_connectivity_radius`). Call it where the dataset is opened; a resolved config is unchanged."""
+    if config.model.connectivity_radius is not None:
+        return config
+    model = dataclasses.replace(config.model, connectivity_radius=float(default_connectivity_radius))
+    return dataclasses.replace(config, model=model).validate()
 
 
 # Model fields added after checkpoints were first written, with the value that rebuilds an older model

@@ -13,12 +13,14 @@ from typing import Any
 import numpy as np
 
 from gns_bench import tracking
-from gns_bench.config import Config, EvalConfig, saved_config
+from gns_bench.config import Config, EvalConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import load_split, read_metadata
+from gns_bench.devices import resolve_device
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
 from gns_bench.evaluate.plots import plot_rollout
-from gns_bench.train.loop import load_simulator, resolve_device, train
+from gns_bench.train.checkpoints import load_simulator
+from gns_bench.train.loop import train
 
 DEFAULT_EXPERIMENT = "gns-bench"
 RUN_ID_FILE = "mlflow_run_id"
@@ -91,6 +93,7 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
 
     Under torchrun only rank 0 tracks and evaluates; the other ranks just train.
     """
+    config = resolve_for_dataset(config, read_metadata(dataset_dir).default_connectivity_radius)
     out_dir = Path(out_dir)
     if int(os.environ.get("RANK", "0")) != 0:
         train(config, dataset_dir, out_dir, resume=resume, progress=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from gns_bench.bench.baseline import concatenated_baseline
@@ -9,10 +10,11 @@ from gns_bench.bench.measure import build_model, forward_flops, synthetic_scene
 from gns_bench.config import ModelConfig
 
 
-def test_baseline_equals_the_split_edge_model() -> None:
+@pytest.mark.parametrize("aggregate", ["messages", "updated_edges"])
+def test_baseline_equals_the_split_edge_model(aggregate: str) -> None:
     scene = synthetic_scene(300, dim=2)
-    model = build_model(ModelConfig(latent_size=32, mlp_hidden_size=32, message_passing_steps=3), scene,
-                        torch.device("cpu"))
+    model = build_model(ModelConfig(latent_size=32, mlp_hidden_size=32, message_passing_steps=3, aggregate=aggregate),
+                        scene, torch.device("cpu"))
     baseline = concatenated_baseline(model)
     with torch.no_grad():
         a = model(scene.window, scene.particle_type)

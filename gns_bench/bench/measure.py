@@ -15,12 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from gns_bench.config import ModelConfig
+from gns_bench.config import Config, ModelConfig
 from gns_bench.data.format import Metadata
 from gns_bench.model import features
 from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.train.checkpoints import build_simulator
 from gns_bench.train.loop import adam
 
 
@@ -133,16 +134,10 @@ def rollout_breakdown(simulator: LearnedSimulator, scene: Scene, device: torch.d
     sync = _sync(device)
     edges = simulator.build_graph(window[:, -1])
     search = timed(lambda: simulator.build_graph(window[:, -1]), repeats, sync=sync)
-    norm = simulator.normalisation
 
     def build() -> tuple[torch.Tensor, torch.Tensor]:
-        x = features.node_features(window, norm, bounds=simulator.bounds, radius=simulator.radius,
-                                   walls=simulator.use_walls, absolute_positions=simulator.absolute)
-        if simulator.use_type_embedding:
-            x = torch.cat([x, simulator.type_embedding(types)], dim=1)
-        e = features.edge_features(window[:, -1], edges, simulator.radius, bounds=simulator.bounds,
-                                   absolute_positions=simulator.absolute)
-        return x, e
+        inputs = simulator.graph_inputs(window, types, edge_index=edges)
+        return inputs.nodes, inputs.edges
 
     feature_time = timed(build, repeats, sync=sync)
     x, e = build()
@@ -194,4 +189,4 @@ def train_step_seconds(simulator: LearnedSimulator, scene: Scene, device: torch.
 
 def build_model(config: ModelConfig, scene: Scene, device: torch.device, seed: int = 0) -> LearnedSimulator:
     torch.manual_seed(seed)
-    return LearnedSimulator(config, scene.metadata, 3e-4).to(device)
+    return build_simulator(Config(model=config), scene.metadata).to(device)  # the paper's sigma_v, the scene's R

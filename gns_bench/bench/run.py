@@ -28,7 +28,7 @@ from gns_bench.bench.measure import (
     train_step_seconds,
 )
 from gns_bench.config import ModelConfig
-from gns_bench.train.loop import resolve_device
+from gns_bench.devices import resolve_device
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Knowl 5), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),

@@ -18,8 +18,7 @@ from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
-from gns_bench.model import features
-from gns_bench.model.precision import autocast, dtype_of, network_dtype
+from gns_bench.model.precision import dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 ONE_STEP_BATCH = 16  # windows per forward pass when measuring one-step error
@@ -110,10 +109,8 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
         batch = make_batch([trajectory], [(0, t) for t in chunk], w).to(device)
         dtype = dtype_of(precision)
         context = batch.context.to(dtype) if batch.context is not None else None
-        with autocast(device, precision):
-            acceleration = simulator.denormalise_acceleration(
-                simulator(batch.window.to(dtype), batch.particle_type, batch.batch, context).to(dtype))
-        predicted = features.integrate(batch.window.to(dtype), acceleration)
+        predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch, context,
+                                                    precision=precision)
         error = (predicted - batch.target).double().square().reshape(len(chunk), -1, trajectory.position.shape[2])
         total += float(error.sum())
         count += error.numel()

@@ -13,9 +13,8 @@ import numpy as np
 import torch
 
 from gns_bench.data.format import Trajectory
-from gns_bench.model import features
 from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
-from gns_bench.model.precision import autocast, dtype_of, network_dtype
+from gns_bench.model.precision import dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 
@@ -117,21 +116,16 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
             present = None
             if birth is None:
                 edges = neighbours(window[:, -1]) if neighbours is not None else None
-                with autocast(device, precision):
-                    acceleration = simulator.denormalise_acceleration(
-                        simulator(window, particle_type, None, step_context, edges, scene_bounds).to(dtype))
-                next_position = features.integrate(window, acceleration)
+                next_position = simulator.predict_next_position(window, particle_type, None, step_context, edges,
+                                                                scene_bounds, precision)
                 next_position = torch.where(kinematic, truth[frame], next_position)
             else:
                 present = birth <= frame - 1  # in the scene at the last input frame
                 index = present.nonzero()[:, 0]
                 sub_window = window.index_select(0, index)
-                with autocast(device, precision):
-                    acceleration = simulator.denormalise_acceleration(
-                        simulator(sub_window, particle_type.index_select(0, index), None, step_context, None,
-                                  scene_bounds).to(dtype))
+                moved = simulator.predict_next_position(sub_window, particle_type.index_select(0, index), None,
+                                                        step_context, None, scene_bounds, precision)
                 next_position = truth[frame].clone()  # absent and kinematic particles follow the data
-                moved = features.integrate(sub_window, acceleration)
                 keep = ~kinematic[index, 0]
                 next_position[index[keep]] = moved[keep]
             try:

@@ -6,6 +6,8 @@ normalisation statistics as buffers, so a checkpoint carries everything needed t
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import nn
 
@@ -14,8 +16,21 @@ from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, NUM_PARTICLE_TYPES, M
 from gns_bench.model import features
 from gns_bench.model.neighbours import radius_graph
 from gns_bench.model.network import EncodeProcessDecode, sonnet_init_
+from gns_bench.model.precision import autocast
 
 CONTEXT_STD_FLOOR = 1e-8
+
+
+class GraphInputs(NamedTuple):
+    """What the encoder reads: node features [N, F], edge features [E, G] (None without message passing),
+    edges [2, E] (sender, receiver), the graph of each node, the graph count, the normalised global context."""
+
+    nodes: torch.Tensor
+    edges: torch.Tensor | None
+    edge_index: torch.Tensor | None
+    batch: torch.Tensor
+    num_graphs: int
+    global_context: torch.Tensor | None
 
 
 class LearnedSimulator(nn.Module):
@@ -23,7 +38,10 @@ class LearnedSimulator(nn.Module):
         super().__init__()
         self.config = config
         self.dim = metadata.dim
-        self.radius = float(config.connectivity_radius or metadata.default_connectivity_radius)
+        if config.connectivity_radius is None:
+            raise ConfigError("model.connectivity_radius is unset: resolve the config against the dataset first "
+                              "(config.resolve_for_dataset)")
+        self.radius = float(config.connectivity_radius)
         # The release gives every particle its wall distances and a type embedding (model.wall_features,
         # model.type_embedding); the other settings follow the dataset (an import that does not know its
         # types counts as several).
@@ -86,6 +104,18 @@ class LearnedSimulator(nn.Module):
         graph; edge_index: precomputed edges for the window's last positions (searched when None);
         bounds [D, 2]: the scene's walls when they differ from the training data's (a larger arena).
         """
+        inputs = self.graph_inputs(window, particle_type, batch, context, edge_index, bounds)
+        out = self.network(inputs.nodes, inputs.edges, inputs.edge_index, inputs.batch, inputs.num_graphs,
+                           inputs.global_context)
+        if self.config.gravity_bias:  # the network predicts the deviation from free fall
+            out = out + (self.gravity - self.acc_mean) / self.acc_std
+        return out
+
+    def graph_inputs(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
+                     context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None,
+                     bounds: torch.Tensor | None = None) -> GraphInputs:
+        """The encoder's input graph (Sec. 3.2, App. B.2): node and edge features and the edges; arguments
+        as `forward`'s."""
         bounds = self.bounds if bounds is None else bounds
         n = window.shape[0]
         if batch is None:
@@ -108,10 +138,7 @@ class LearnedSimulator(nn.Module):
             x = torch.cat([x, self.type_embedding(particle_type)], dim=1)
         e = (features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,
                                     bounds=bounds) if uses_edges else None)
-        out = self.network(x, e, edge_index, batch, num_graphs, global_context)
-        if self.config.gravity_bias:  # the network predicts the deviation from free fall
-            out = out + (self.gravity - self.acc_mean) / self.acc_std
-        return out
+        return GraphInputs(x, e, edge_index, batch, num_graphs, global_context)
 
     def normalise_acceleration(self, acceleration: torch.Tensor) -> torch.Tensor:
         return (acceleration - self.acc_mean) / self.acc_std
@@ -121,10 +148,17 @@ class LearnedSimulator(nn.Module):
 
     def predict_next_position(self, window: torch.Tensor, particle_type: torch.Tensor,
                               batch: torch.Tensor | None = None, context: torch.Tensor | None = None,
-                              edge_index: torch.Tensor | None = None) -> torch.Tensor:
-        """Next positions of every particle (callers put kinematic particles back from the data)."""
-        acceleration = self.denormalise_acceleration(self(window, particle_type, batch, context, edge_index))
-        return features.integrate(window, acceleration)
+                              edge_index: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
+                              precision: str = "fp32") -> torch.Tensor:
+        """Next positions [N, D] of every particle, the one prediction path of evaluation and rollouts
+        (callers put kinematic particles back from the data).
+
+        The network runs under `precision` ("bf16": autocast; "fp64": the caller has cast the simulator,
+        see `precision.network_dtype`); its output is cast back to the window's dtype, so denormalisation and
+        the semi-implicit Euler step (Sec. 3.1) never round positions to bf16."""
+        with autocast(window.device, precision):
+            normalised = self(window, particle_type, batch, context, edge_index, bounds)
+        return features.integrate(window, self.denormalise_acceleration(normalised.to(window.dtype)))
 
 
 def kinematic_mask(particle_type: torch.Tensor) -> torch.Tensor:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gns_bench import tracking
-from gns_bench.config import Config
+from gns_bench.config import Config, resolve_for_dataset
 from gns_bench.data.format import read_metadata
 from gns_bench.data.generate import dataset_path, ensure_dataset
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, train_run
@@ -36,31 +36,29 @@ class RunOutcome:
     metrics: dict[str, float] | None = None
 
 
-KEY_VERSION = 2  # 1: every config field in the key (before 2026-11-22)
+# 1: every config field in the key (before 2026-11-22). 2: only fields that differ from Config()'s.
+# 3: configs resolved against their dataset before keying (issue #18), and the release's defaults (#17).
+KEY_VERSION = 3
 _MISSING = object()
 
 
-def run_key(run: PlannedRun, dataset_hash: str, dataset_radius: float | None = None) -> str:
+def run_key(config: Config, domain: str, dataset_hash: str) -> str:
     """Only the config values that differ from `Config()`'s enter the key, so adding a config field with a
     default leaves every existing run's key (and its FINISHED status) as it was. Changing an existing
-    default changes what the keys that omit it mean: bump `KEY_VERSION` with it.
-
-    A connectivity radius equal to the dataset's default (`dataset_radius`) is keyed as the default, which
-    resolves to it: the radius ablation's R = 0.015 point is the GOOP domain run."""
+    default changes what the keys that omit it mean: bump `KEY_VERSION` with it. `config` is resolved
+    against the dataset (`dataset_run_key`), so the radius ablation's R = 0.015 point is the GOOP run."""
     defaults = Config().to_dict()
-    resolved = run.config.to_dict()
-    if dataset_radius is not None and resolved["model"].get("connectivity_radius") == dataset_radius:
-        resolved["model"]["connectivity_radius"] = defaults["model"]["connectivity_radius"]
-    config = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
-              for section, values in resolved.items()}
-    payload = {"config": config, "domain": run.domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
+    config_values = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
+                     for section, values in config.to_dict().items()}
+    payload = {"config": config_values, "domain": domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
 
 def dataset_run_key(run: PlannedRun, dataset_dir: Path) -> str:
-    """`run_key` of a run on the dataset in `dataset_dir` (its content hash and default radius)."""
+    """`run_key` of a run on the dataset in `dataset_dir`: its config resolved against that dataset."""
     metadata = read_metadata(dataset_dir)
-    return run_key(run, metadata.content_hash or "", metadata.default_connectivity_radius)
+    config = resolve_for_dataset(run.config, metadata.default_connectivity_radius)
+    return run_key(config, run.domain, metadata.content_hash or "")
 
 
 def finished_keys(experiment: str) -> dict[str, tracking.RunRecord]:

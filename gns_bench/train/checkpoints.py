@@ -1,4 +1,5 @@
-"""Checkpoints: written atomically (temporary file, then rename), so a crash never leaves a torn one."""
+"""Checkpoints: written atomically (temporary file, then rename), so a crash never leaves a torn one; and the
+simulator rebuilt from one (its config and the dataset's normalisation travel with it)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from gns_bench.config import Config, resolve_for_dataset, saved_config
+from gns_bench.data.format import Metadata
+from gns_bench.devices import resolve_device
+from gns_bench.model.simulator import LearnedSimulator
 
 CHECKPOINT_NAME = "checkpoint.pt"
 FORMAT_VERSION = 1
@@ -37,3 +43,24 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if state["format_version"] != FORMAT_VERSION:
         raise ValueError(f"{path}: checkpoint format {state['format_version']}, expected {FORMAT_VERSION}")
     return state
+
+
+def build_simulator(config: Config, metadata: Metadata) -> LearnedSimulator:
+    """A fresh simulator for `config` (resolved against `metadata` if it is not yet) on that dataset."""
+    config = resolve_for_dataset(config, metadata.default_connectivity_radius)
+    return LearnedSimulator(config.model, metadata, config.train.noise_std)
+
+
+def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
+                   ) -> tuple[LearnedSimulator, Config, Metadata]:
+    """Rebuild a trained simulator from its checkpoint, in eval mode on `device` ("auto" allowed). Its config
+    is resolved against the dataset it was trained on (checkpoints from before configs were resolved hold
+    no radius) and reads fields it predates as they were (`config.saved_config`)."""
+    device = resolve_device(str(device))
+    saved = load_checkpoint(checkpoint, device)
+    metadata = Metadata.from_json(saved["metadata"], f"{checkpoint} (metadata)")
+    config = resolve_for_dataset(saved_config(saved["config"], str(checkpoint)), metadata.default_connectivity_radius)
+    simulator = build_simulator(config, metadata).to(device)
+    simulator.load_state_dict(saved["model"])
+    simulator.eval()
+    return simulator, config, metadata

@@ -18,15 +18,16 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from gns_bench.config import Config, TrainConfig, saved_config
+from gns_bench.config import Config, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
+from gns_bench.devices import resolve_device
 from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 from gns_bench.train import distributed
-from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
+from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 
 # Train settings that may change between an interrupted run and its resumption.
 RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads"}
@@ -53,12 +54,6 @@ def adam(parameters: Iterable[torch.nn.Parameter], lr: float) -> torch.optim.Ada
     parameters = list(parameters)
     fused = all(p.device.type in ("cpu", "cuda") for p in parameters)
     return torch.optim.Adam(parameters, lr=lr, fused=fused)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
@@ -103,15 +98,11 @@ def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: f
     return make_batch(sampler.trajectories, mine, sampler.window), noise, num_moving
 
 
-def build_simulator(config: Config, metadata: Metadata) -> LearnedSimulator:
-    return LearnedSimulator(config.model, metadata, config.train.noise_std)
-
-
 def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path) -> None:
     if saved["metadata"].get("content_hash") != metadata.content_hash:
         raise ValueError(f"{path}: checkpoint was trained on dataset {saved['metadata'].get('content_hash')}, "
                          f"not {metadata.content_hash}")
-    old = saved_config(saved["config"], str(path))
+    old = resolve_for_dataset(saved_config(saved["config"], str(path)), metadata.default_connectivity_radius)
     if old.model != config.model:
         raise ValueError(f"{path}: model config differs from the checkpoint's; cannot resume")
     changed = {f.name for f in dataclasses.fields(TrainConfig)
@@ -135,6 +126,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     group = distributed.from_environment(device)
     progress = progress and group.is_main
     metadata = read_metadata(dataset_dir)
+    config = resolve_for_dataset(config, metadata.default_connectivity_radius)
     trajectories = load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
     sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed)
 
@@ -209,15 +201,3 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     elapsed = time.perf_counter() - started
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
     return TrainResult(checkpoint_path, losses, start_step, step, rate, earlier_wall_time + elapsed)
-
-
-def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
-                   ) -> tuple[LearnedSimulator, Config, Metadata]:
-    """Rebuild a trained simulator from its checkpoint (config and normalisation travel with it)."""
-    saved = load_checkpoint(checkpoint, device)
-    config = saved_config(saved["config"], str(checkpoint))
-    metadata = Metadata.from_json(saved["metadata"], f"{checkpoint} (metadata)")
-    simulator = build_simulator(config, metadata).to(device)
-    simulator.load_state_dict(saved["model"])
-    simulator.eval()
-    return simulator, config, metadata

@@ -22,8 +22,10 @@ BIRTHS = (9, 9, 12, 12)  # frames at which the four new particles enter
 @pytest.fixture(scope="module")
 def simulator(tiny_dataset: Path) -> LearnedSimulator:
     torch.manual_seed(0)
-    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2),
-                            read_metadata(tiny_dataset), 3e-4).eval()
+    meta = read_metadata(tiny_dataset)
+    config = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2,
+                         connectivity_radius=meta.default_connectivity_radius)
+    return LearnedSimulator(config, meta, 3e-4).eval()
 
 
 def with_inflow(traj: Trajectory, radius: float, births: tuple[int, ...] = BIRTHS) -> Trajectory:

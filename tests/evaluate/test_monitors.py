@@ -38,7 +38,8 @@ def untrained_simulator(dataset: Path) -> tuple[LearnedSimulator, object]:
     """A small untrained GNS on `dataset` (seeded), with the dataset's metadata."""
     torch.manual_seed(0)
     meta = read_metadata(dataset)
-    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1), meta,
+    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=1,
+                                        connectivity_radius=meta.default_connectivity_radius), meta,
                             3e-4).eval(), meta
 
 

@@ -18,8 +18,10 @@ from gns_bench.model.simulator import LearnedSimulator
 @pytest.fixture(scope="module")
 def untrained(tiny_dataset: Path) -> LearnedSimulator:
     torch.manual_seed(0)
-    return LearnedSimulator(ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2),
-                            read_metadata(tiny_dataset), 3e-4).eval()
+    meta = read_metadata(tiny_dataset)
+    config = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2,
+                         connectivity_radius=meta.default_connectivity_radius)
+    return LearnedSimulator(config, meta, 3e-4).eval()
 
 
 def test_kinematic_particles_follow_the_data(untrained: LearnedSimulator, tiny_dataset: Path) -> None:

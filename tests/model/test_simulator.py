@@ -14,7 +14,7 @@ from gns_bench.model.network import InteractionNetwork
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.simulator import LearnedSimulator
 
-SMALL = dict(latent_size=32, mlp_hidden_size=32, message_passing_steps=3)
+SMALL = dict(latent_size=32, mlp_hidden_size=32, message_passing_steps=3, connectivity_radius=0.2)  # R of `metadata`
 
 
 def metadata(walls: bool, types: int = 2, context: int = 0, gravity: bool = False) -> Metadata:
@@ -220,7 +220,7 @@ def test_release_initialisation() -> None:
     """Sonnet 1.x's Linear: weights from N(0, 1/fan_in) truncated at 2 std (std 0.88/sqrt(fan_in)), zero
     biases; the type embedding Glorot-uniform. PyTorch's defaults (`init="torch"`) differ measurably."""
     torch.manual_seed(0)
-    sim = LearnedSimulator(ModelConfig(), metadata(walls=True), 3e-4)  # the paper's size: 128-wide MLPs
+    sim = LearnedSimulator(ModelConfig(connectivity_radius=0.2), metadata(walls=True), 3e-4)  # 128-wide MLPs
     linears = [m for m in sim.modules() if isinstance(m, torch.nn.Linear)]
     assert len(linears) == 3 * (2 + 2 * 10) + 3  # encoders, 10 blocks of two MLPs, decoder
     for layer in linears:
@@ -231,7 +231,7 @@ def test_release_initialisation() -> None:
     table = sim.type_embedding.weight.detach()
     glorot = (6.0 / sum(table.shape)) ** 0.5
     assert float(table.abs().max()) <= glorot and float(table.std()) == pytest.approx(glorot / 3**0.5, rel=0.15)
-    torch_sim = LearnedSimulator(ModelConfig(init="torch"), metadata(walls=True), 3e-4)
+    torch_sim = LearnedSimulator(ModelConfig(init="torch", connectivity_radius=0.2), metadata(walls=True), 3e-4)
     first = torch_sim.network.processor[0].edge_mlp[0]
     assert float(first.bias.detach().abs().max()) > 0 and float(torch_sim.type_embedding.weight.detach().std()) > 0.8
 

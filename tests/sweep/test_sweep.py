@@ -12,6 +12,7 @@ from mlflow.tracking import MlflowClient
 
 from gns_bench import tracking
 from gns_bench.cli import main
+from gns_bench.config import resolve_for_dataset
 from gns_bench.sweep.runner import prepare, run_key, run_sweep
 from gns_bench.sweep.spec import SWEEP_PREFIXES, SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
@@ -53,7 +54,7 @@ def test_every_sweep_file_loads_and_plans() -> None:
     assert ablations == {"message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
                          "position_encoding", "noise_correction", "mlp_depth", "latent_size", "self_edges",
                          "global_latent", "gravity_bias", "linear_encoder_decoder"}
-    assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay"}
+    assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate"}
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
     assert [r.config.model.message_passing_steps for r in mp.plan("small")] == [0, 1, 2, 3, 5, 7, 10, 15]
     assert all(r.config.train.steps == 20 and r.config.model.latent_size == 16 for r in mp.plan("smoke"))
@@ -313,19 +314,23 @@ def test_a_failing_run_is_recorded_failed_and_the_sweep_goes_on(sweeps: Path, tm
     assert "diverged on purpose" in runs[failed.name].data.tags["error"]
 
 
+def dataset_key(run, dataset_hash: str, radius: float = 0.015) -> str:
+    """The key `dataset_run_key` gives `run` on a dataset with this hash and default radius."""
+    return run_key(resolve_for_dataset(run.config, radius), run.domain, dataset_hash)
+
+
 def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch) -> None:
     """A config field added later with a default must not change the keys of runs already done."""
     import dataclasses
 
     from gns_bench.config import Config
-    from gns_bench.sweep.runner import run_key
 
     run = next(iter(load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("smoke")))
-    key = run_key(run, "abc")
-    assert run_key(run, "abd") != key  # the dataset is in the key
+    key = dataset_key(run, "abc")
+    assert dataset_key(run, "abd") != key  # the dataset is in the key
     changed = dataclasses.replace(run, config=dataclasses.replace(
         run.config, train=dataclasses.replace(run.config.train, compile=not run.config.train.compile)))
-    assert run_key(changed, "abc") != key  # a non-default value is in the key
+    assert dataset_key(changed, "abc") != key  # a non-default value is in the key
     without = Config.to_dict
 
     def older_config(self: Config) -> dict:  # as if `train.compile` did not exist yet
@@ -334,11 +339,12 @@ def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch
         return values
 
     monkeypatch.setattr(Config, "to_dict", older_config)
-    assert run_key(run, "abc") == key
+    assert dataset_key(run, "abc") == key
 
 
 def test_run_key_resolves_a_radius_equal_to_the_datasets() -> None:
-    """The radius ablation's point at the dataset's default R is the domain run, which leaves R unset."""
+    """The radius ablation's point at the dataset's default R is the domain run, which leaves R unset: both
+    resolve to the same number against the dataset."""
     import dataclasses
 
     plan = {r.name: r for r in load_sweep(SWEEPS_DIR / "ablations" / "connectivity_radius.toml").plan("small")}
@@ -346,10 +352,9 @@ def test_run_key_resolves_a_radius_equal_to_the_datasets() -> None:
     at_default, wider = plan["connectivity_radius=0.015-seed0"], plan["connectivity_radius=0.02-seed0"]
     unset = dataclasses.replace(at_default, config=dataclasses.replace(
         at_default.config, model=dataclasses.replace(at_default.config.model, connectivity_radius=None)))
-    assert run_key(at_default, "abc", 0.015) == run_key(unset, "abc", 0.015) == run_key(domain_run, "abc", 0.015)
-    assert run_key(wider, "abc", 0.015) != run_key(domain_run, "abc", 0.015)
-    assert run_key(at_default, "abc", 0.02) != run_key(domain_run, "abc", 0.02)  # another dataset's default
-    assert run_key(at_default, "abc") != run_key(domain_run, "abc")  # no dataset radius known: explicit
+    assert dataset_key(at_default, "abc") == dataset_key(unset, "abc") == dataset_key(domain_run, "abc")
+    assert dataset_key(wider, "abc") != dataset_key(domain_run, "abc")
+    assert dataset_key(at_default, "abc", 0.02) != dataset_key(domain_run, "abc", 0.02)  # another dataset's R
 
 
 def test_experiment_created_by_a_parallel_run_is_reused(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -438,8 +443,8 @@ def test_the_decay_study_shares_its_compressed_and_paper_points_with_the_goop_do
              load_sweep(SWEEPS_DIR / "studies" / "learning_rate_decay.toml").plan("small")}
     goop = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("small")[0]
     assert sorted(study) == [2_500, 5_000, 10_000, 5_000_000]
-    assert run_key(study[5_000], "hash", 0.015) == run_key(goop, "hash", 0.015)
+    assert dataset_key(study[5_000], "hash") == dataset_key(goop, "hash")
     paper_decay = replace(goop, config=replace(goop.config, train=replace(goop.config.train,
                                                                          learning_rate_decay_steps=5_000_000)))
-    assert run_key(study[5_000_000], "hash", 0.015) == run_key(paper_decay, "hash", 0.015)
-    assert run_key(study[10_000], "hash", 0.015) != run_key(goop, "hash", 0.015)
+    assert dataset_key(study[5_000_000], "hash") == dataset_key(paper_decay, "hash")
+    assert dataset_key(study[10_000], "hash") != dataset_key(goop, "hash")

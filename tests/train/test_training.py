@@ -10,7 +10,8 @@ import pytest
 from gns_bench.config import load_config
 from gns_bench.data.format import load_split
 from gns_bench.evaluate.evaluate import evaluate
-from gns_bench.train.loop import learning_rate, load_simulator, train
+from gns_bench.train.checkpoints import load_simulator
+from gns_bench.train.loop import learning_rate, train
 
 QUICK = ["model.message_passing_steps=2", "model.latent_size=64", "model.mlp_hidden_size=64",
          "train.batch_size=8", "train.learning_rate=2e-3", "train.learning_rate_decay_steps=2000",
