@@ -5,11 +5,16 @@ run cut off and resumed (DatasetWriter keeps the complete trajectories of `<out>
 exactly the files an uninterrupted run would. A variant uses its base domain's id here, so its trajectory
 i starts as the base's does. Statistics are computed from the generated train split (a variant without
 one: its first non-empty split).
+
+The metadata's `generator` records GENERATOR_VERSION. A complete dataset (or a partial one, `<out>.partial/`)
+made by an older version whose solver's data has changed since (SOLVER_DATA_VERSION) is stale: it is moved
+aside to `<out>.stale-v<version>` (never deleted) and the dataset is generated afresh.
 """
 
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 import time
 import zlib
@@ -24,6 +29,14 @@ from gns_bench.data.statistics import compute_statistics
 from gns_bench.physics.spec import DomainSpec, load_domain_spec
 
 GENERATOR_NAME = "gns-bench"
+# Version of the generated data, stored as the metadata's generator["generator_version"] (missing: 1).
+#   1: MPM material seeded on a regular lattice, 2 particles per grid cell per dimension
+#   2: MPM material seeded i.i.d. uniform in each block, blob and inflow slab at that lattice's density
+GENERATOR_VERSION = 2
+# The version in which each solver's data last changed: a dataset made before it is stale. SPH and PBD keep
+# their lattices (their rest density is computed on one), so their version-1 data is still current.
+SOLVER_DATA_VERSION = {"mpm": 2, "sph": 1, "pbd": 1}
+VERSION_FILE = "generator_version"  # in `<out>.partial/`: the version writing it, removed once complete
 MAX_ATTEMPTS = 3  # initial conditions drawn per trajectory before a blow-up stops the generation
 SOLVER_MODULES = {"mpm": "gns_bench.physics.mpm", "sph": "gns_bench.physics.sph",
                   "pbd": "gns_bench.physics.pbd"}
@@ -108,18 +121,56 @@ def check_trajectory(traj: Trajectory, spec: DomainSpec, sequence_length: int, w
                               f"particle, got shape {birth.shape}")
 
 
+def stale_generator_version(path: str | Path) -> int | None:
+    """The generator version of the complete dataset at `path` if this generator made it with a version
+    older than its solver's data (SOLVER_DATA_VERSION), else None (current, imported, or `tiny`)."""
+    generator = json.loads((Path(path) / "metadata.json").read_text()).get("generator") or {}
+    solver = generator.get("solver")
+    if generator.get("name") != GENERATOR_NAME or solver not in SOLVER_DATA_VERSION:
+        return None
+    version = int(generator.get("generator_version", 1))
+    return version if version < SOLVER_DATA_VERSION[solver] else None
+
+
+def _partial_version(partial: Path) -> int:
+    marker = partial / VERSION_FILE
+    return int(marker.read_text()) if marker.is_file() else 1
+
+
+def set_aside(path: Path, version: int) -> Path:
+    """Move a stale dataset (or partial one) to a free sibling `<path>.stale-v<version>[-k]`; say so."""
+    aside = path.with_name(f"{path.name}.stale-v{version}")
+    k = 1
+    while aside.exists():
+        k += 1
+        aside = path.with_name(f"{path.name}.stale-v{version}-{k}")
+    path.rename(aside)
+    print(f"{path}: made by generator version {version}, and its solver's data has changed since (now "
+          f"version {GENERATOR_VERSION}, see gns_bench/physics/generate.py): stale, moved aside to {aside}; "
+          "generating afresh", file=sys.stderr)
+    return aside
+
+
 def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | None = None,
                      progress: bool = True) -> Path:
-    """Generate (or resume, or return unchanged if complete) `out`, default `data/<domain>-<tier>-s<seed>`."""
+    """Generate (or resume, or return unchanged if complete and current) `out`, default
+    `data/<domain>-<tier>-s<seed>`. A stale complete or partial dataset is moved aside first (`set_aside`)."""
     spec = load_domain_spec(domain).for_tier(tier)
     tier_spec = spec.tier(tier)
     out = Path(out) if out is not None else dataset_path(domain, tier, seed)
     if (out / "metadata.json").is_file():
-        return out
+        version = stale_generator_version(out)
+        if version is None:
+            return out
+        set_aside(out, version)
     if out.exists():
         raise FileExistsError(f"{out} exists but holds no metadata.json: not a complete dataset; remove it")
+    partial = out.with_name(out.name + ".partial")
+    if partial.is_dir() and _partial_version(partial) < SOLVER_DATA_VERSION[spec.solver]:
+        set_aside(partial, _partial_version(partial))  # never resume it with another generator's data
     solver = importlib.import_module(SOLVER_MODULES[spec.solver])
     writer = DatasetWriter(out)
+    (writer.partial_dir / VERSION_FILE).write_text(f"{GENERATOR_VERSION}\n")
     total = sum(tier_spec.trajectories.values())
     done = sum(writer.count(split) for split in SPLITS)
     bar = None
@@ -142,8 +193,8 @@ def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | No
 
     stats_split = next(split for split in SPLITS if tier_spec.trajectories[split])
     stats = compute_statistics(iter_split(writer.partial_dir, stats_split))
-    generator = {"name": GENERATOR_NAME, "version": _version(), "domain": domain, "tier": tier, "seed": seed,
-                 "solver": spec.solver}
+    generator = {"name": GENERATOR_NAME, "version": _version(), "generator_version": GENERATOR_VERSION,
+                 "domain": domain, "tier": tier, "seed": seed, "solver": spec.solver}
     if spec.base is not None:
         generator.update(base=spec.base, variant=spec.id, statistics_split=stats_split)
     meta = Metadata(
@@ -154,6 +205,7 @@ def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | No
         generator=generator,
     )
     path = writer.finish(meta)
+    (path / VERSION_FILE).unlink(missing_ok=True)  # the metadata holds it now
     if progress:
         seconds = time.perf_counter() - start
         summary = (f"{domain}/{tier} seed {seed}: {len(particles)} trajectories generated "

@@ -1,4 +1,10 @@
-"""2D/3D geometry of the MPM scenes: particle lattices, blobs, convex obstacles and their signed distance."""
+"""2D/3D geometry of the MPM scenes: particle seeding, blobs, convex obstacles and their signed distance.
+
+Material is seeded at random: i.i.d. uniform positions inside each shape, as Taichi's `mpm99` does and as
+the first frame of DeepMind's WaterRamps shows, at the density of the usual MPM lattice (2 particles per
+grid cell per dimension, one per spacing^D). A lattice would survive into the flow (nearest-neighbour
+distances all equal at frame 0, ordered patches in settled piles), a regularity the paper's data lacks.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +13,36 @@ import math
 import numpy as np
 
 
+def _lattice_axes(lo: np.ndarray, hi: np.ndarray, spacing: float) -> list[np.ndarray]:
+    """Cell centres per dimension of the lattice of `spacing` from `lo`: those below `hi`."""
+    return [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi, strict=True)]
+
+
 def lattice_block(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
-    """Particles on a regular lattice filling the box [lo, hi], cell-centred (2 per grid cell per dim)."""
-    axes = [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi, strict=True)]
-    grids = np.meshgrid(*axes, indexing="ij")
+    """Particles on a regular lattice filling the box [lo, hi], cell-centred (2 per grid cell per dim):
+    `random_block`'s count and the sampling on which a blob's solidity is measured; no scene seeds on it."""
+    grids = np.meshgrid(*_lattice_axes(lo, hi, spacing), indexing="ij")
     return np.stack(grids, axis=-1).reshape(-1, len(lo))
 
 
+def random_block(lo: np.ndarray, hi: np.ndarray, spacing: float, rng: np.random.Generator) -> np.ndarray:
+    """As many particles as `lattice_block(lo, hi, spacing)` holds, i.i.d. uniform over that lattice's
+    cells (the box from `lo` to `lo` + n_d spacing per dimension, within half a spacing of `hi`): the
+    lattice's density, one particle per spacing^D, without its regularity."""
+    cells = np.array([len(axis) for axis in _lattice_axes(lo, hi, spacing)])
+    count = int(np.prod(cells))
+    return np.asarray(lo, float) + rng.random((count, len(cells))) * (cells * spacing)
+
+
 def blob_points(b_lo: np.ndarray, b_hi: np.ndarray, spacing: float, discs: list[int],
-                rng: np.random.Generator) -> np.ndarray:
-    """Lattice particles inside a union of 3-5 overlapping discs, stretched to fill the box [b_lo, b_hi]
-    (2D). Each disc after the first overlaps a random earlier one (its centre at 0.6-0.95 of the sum of
-    their radii), so the union is connected and usually non-convex."""
+                rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """Particles inside a union of 3-5 overlapping discs, stretched to fill the box [b_lo, b_hi] (2D), and
+    the blob's solidity. Each disc after the first overlaps a random earlier one (its centre at 0.6-0.95 of
+    the sum of their radii), so the union is connected and usually non-convex.
+
+    The particles are those of `random_block(b_lo, b_hi)` that fall inside: the block's density, a count
+    binomial around the area's. The solidity is the shape's, measured on its lattice sampling (`solidity`),
+    not on the random particles, whose convex hull depends on the draw (and misses more of a small shape)."""
     count = int(rng.integers(discs[0], discs[1] + 1))
     centres, radii = [np.zeros(2)], [float(rng.uniform(0.25, 0.45))]
     for _ in range(count - 1):
@@ -30,15 +54,21 @@ def blob_points(b_lo: np.ndarray, b_hi: np.ndarray, spacing: float, discs: list[
         radii.append(r)
     c, r = np.array(centres), np.array(radii)
     box_lo, box_hi = (c - r[:, None]).min(axis=0), (c + r[:, None]).max(axis=0)
-    pts = lattice_block(b_lo, b_hi, spacing)
-    unit = box_lo + (pts - b_lo) / (b_hi - b_lo) * (box_hi - box_lo)  # back into the discs' frame
-    inside = np.any(np.linalg.norm(unit[:, None, :] - c[None], axis=-1) < r[None], axis=1)
-    return pts[inside]
+
+    def inside(pts: np.ndarray) -> np.ndarray:
+        unit = box_lo + (pts - b_lo) / (b_hi - b_lo) * (box_hi - box_lo)  # back into the discs' frame
+        return np.any(np.linalg.norm(unit[:, None, :] - c[None], axis=-1) < r[None], axis=1)
+
+    shape = lattice_block(b_lo, b_hi, spacing)
+    shape = shape[inside(shape)]
+    pts = random_block(b_lo, b_hi, spacing, rng)
+    return pts[inside(pts)], solidity(shape, spacing) if len(shape) else 1.0  # no cell inside: no blob
 
 
 def solidity(points: np.ndarray, spacing: float) -> float:
-    """Area of a 2D lattice shape (particles x spacing^2) over the area of the convex hull of its cells
-    (1 for a rectangle of particles; clearly less for a non-convex blob)."""
+    """Area of a 2D shape sampled on the lattice (`lattice_block`'s points inside it: particles x
+    spacing^2) over the area of the convex hull of its cells (1 for a rectangle; clearly less for a
+    non-convex blob)."""
     # only the lowest and the highest cell of each lattice column can reach the hull
     xs, column = np.unique(np.round(points[:, 0], 9), return_inverse=True)
     low, high = np.full(len(xs), np.inf), np.full(len(xs), -np.inf)

@@ -2,13 +2,19 @@
 
 The paper's generalisation scene (Knowl 7) has "multiple streams pouring continuously into an arena" of
 8.0 x 4.0. A stream is a nozzle, a segment of width `width` centred on `position` and perpendicular to the
-stream's `velocity`, that emits one row of particles at the lattice spacing s every s / |v| seconds from
-stored frame `start` until frame `stop`: a continuous stream at the density of the scenes' blocks.
+stream's `velocity`, that emits M = round(width / s) particles every s / |v| seconds (s: the scenes'
+spacing) from stored frame `start` until frame `stop`: a continuous stream at the density of the scenes'
+blocks, one particle per s^2.
+
+Particles are seeded at random, as the blocks are (geometry.random_block): the k-th batch of M fills the
+slab of stream that crosses the nozzle in [t_k, t_k + s / |v|), t_k = start dt + k s / |v|, each particle
+at a uniform place across the nozzle's M cells (width M s) and leaving it at a uniform time in that
+interval, i.e. i.i.d. uniform in the slab: no rows on a lattice, a regularity the blocks no longer have.
 
 Particles are preallocated: the scene holds every particle the run will emit, each with its birth frame.
-Row k of a stream leaves the nozzle at t_k = start dt + k s / |v|; it is born at the first stored frame
-b_k = ceil(t_k / dt) at or after that, already advanced by v (b_k dt - t_k), so that rows stay s apart
-although births fall on frame boundaries. Before b_k the solver skips it (mpm_kernels.INACTIVE).
+A particle leaving the nozzle at time t is born at the first stored frame b = ceil(t / dt) at or after
+that, already advanced by v (b dt - t), so that the stream keeps its density although births fall on
+frame boundaries. Before b the solver skips it (mpm_kernels.INACTIVE).
 
 Stored positions before birth (`prebirth_path`): the straight path p_b + v (t - b) dt for the
 HISTORY_FRAMES frames t in [b - 6, b), and p_{b-6} for every earlier frame. A particle born at b thus
@@ -44,32 +50,43 @@ class Emitter:
     def speed(self) -> float:
         return float(np.linalg.norm(self.velocity))
 
-    def row_offsets(self, spacing: float) -> np.ndarray:
-        """[M, 2] positions of one row relative to the nozzle centre: M = round(width / s) particles s
-        apart across the stream."""
-        across = np.array([-self.velocity[1], self.velocity[0]]) / self.speed
-        count = max(1, round(self.width / spacing))
-        return (np.arange(count) - (count - 1) / 2)[:, None] * spacing * across
+    @property
+    def across(self) -> np.ndarray:
+        """Unit vector across the stream (along the nozzle)."""
+        return np.array([-self.velocity[1], self.velocity[0]]) / self.speed
 
-    def particles(self, spacing: float, dt: float, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    def row_count(self, spacing: float) -> int:
+        """M = round(width / s): particles emitted per s / |v| seconds, the nozzle's cells s wide."""
+        return max(1, round(self.width / spacing))
+
+    def row_offsets(self, spacing: float) -> np.ndarray:
+        """[M, 2] centres of the nozzle's M cells relative to its centre, s apart across the stream."""
+        count = self.row_count(spacing)
+        return (np.arange(count) - (count - 1) / 2)[:, None] * spacing * self.across
+
+    def particles(self, spacing: float, dt: float, frames: int,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Birth positions [P, 2] and birth frames [P] of every particle emitted up to stored frame
-        `frames`, in order of birth."""
-        row_frames = spacing / (self.speed * dt)  # frames between rows
+        `frames`, in order of birth; each batch of M i.i.d. uniform in its slab of stream (module doc)."""
+        row_frames = spacing / (self.speed * dt)  # frames between batches
         last = min(self.stop, frames)
+        count = self.row_count(spacing)
         k = np.arange(math.floor((last - self.start) / row_frames) + 2)
-        leave = self.start + k * row_frames  # when row k leaves the nozzle, in frames
+        # when each particle leaves the nozzle, in frames, and where across it
+        leave = (self.start + (k[:, None] + rng.random((len(k), count))) * row_frames).ravel()
+        offset = ((rng.random((len(k), count)) - 0.5) * (count * spacing)).ravel()
         birth = np.ceil(leave - 1e-9).astype(np.int64)
         keep = birth <= last
-        leave, birth = leave[keep], birth[keep]
-        centres = self.position + ((birth - leave) * dt)[:, None] * self.velocity  # advanced since leaving
-        offsets = self.row_offsets(spacing)
-        pos = (centres[:, None, :] + offsets[None]).reshape(-1, 2)
-        return pos, np.repeat(birth, len(offsets))
+        leave, birth, offset = leave[keep], birth[keep], offset[keep]
+        pos = (self.position + ((birth - leave) * dt)[:, None] * self.velocity  # advanced since leaving
+               + offset[:, None] * self.across)
+        order = np.argsort(birth, kind="stable")
+        return pos[order], birth[order]
 
     def reach(self, spacing: float, dt: float) -> np.ndarray:
-        """[4, 2] corners of the region a row covers from HISTORY_FRAMES frames before its birth to its
-        birth (the stored pre-birth path and the nozzle)."""
-        ends = self.row_offsets(spacing)[[0, -1]]
+        """[4, 2] corners of the region a particle covers from HISTORY_FRAMES frames before its birth to its
+        birth (the stored pre-birth path and the nozzle's M cells)."""
+        ends = np.array([-0.5, 0.5])[:, None] * (self.row_count(spacing) * spacing) * self.across
         back, ahead = -HISTORY_FRAMES * dt * self.velocity, dt * self.velocity
         return np.array([self.position + e + d for e in ends for d in (back, ahead)])
 

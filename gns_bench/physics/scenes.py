@@ -28,10 +28,14 @@ Keys of `[scene]` (a tier may override any of them in `[tiers.<name>.scene]`):
                                  is otherwise the one drawn without it (the solver's own sensitivity)
   inflow            [{ position = [x, y], velocity = [vx, vy], width = w, start = f0, stop = f1,
                        material = "water" }, ...]
-                                 nozzles emitting streams (2D; gns_bench/physics/inflow.py): a row of
-                                 particles across `width` every spacing / |velocity| seconds from stored
-                                 frame `start` until frame `stop`. `blocks` may then be [0, 0]. Emitted
-                                 particles count towards the tier's max_particles.
+                                 nozzles emitting streams (2D; gns_bench/physics/inflow.py): round(width
+                                 / spacing) particles every spacing / |velocity| seconds, at random in the
+                                 slab of stream they fill, from stored frame `start` until frame `stop`.
+                                 `blocks` may then be [0, 0]. Emitted particles count towards the tier's
+                                 max_particles.
+Material is seeded at random, i.i.d. uniform inside each block, blob and stream at one particle per
+spacing^D (spacing = half a grid cell: the count of the usual 2-per-cell-per-dimension lattice), from the
+trajectory's rng (geometry.random_block, inflow.Emitter.particles).
 Obstacles become static grid boundaries in the solver and kinematic particles (type 3) in the data.
 """
 
@@ -45,10 +49,9 @@ import numpy as np
 
 from gns_bench.physics.geometry import (
     blob_points,
-    lattice_block,
+    random_block,
     rectangle,
     sample_boundary,
-    solidity,
     union_sdf,
 )
 from gns_bench.physics.inflow import Emitter, parse_emitters
@@ -124,10 +127,10 @@ class MpmScene:
 # ----------------------------------------------------------------------------------------------
 
 def block_scene(material: int, particle_type: int, block_lo: list[float], block_hi: list[float],
-                bounds: list[list[float]], grid: int) -> MpmScene:
-    """One block of one material at rest in a fixed container: the setup of the physics tests
-    (water column, dam break, granular collapse)."""
-    pts = lattice_block(np.asarray(block_lo, float), np.asarray(block_hi, float), 0.5 / grid)
+                bounds: list[list[float]], grid: int, rng: np.random.Generator) -> MpmScene:
+    """One block of one material at rest in a fixed container, seeded at random as the domains' blocks
+    are: the setup of the physics tests (water column, dam break, granular collapse)."""
+    pts = random_block(np.asarray(block_lo, float), np.asarray(block_hi, float), 0.5 / grid, rng)
     b = np.asarray(bounds, float)
     return MpmScene(pts, np.zeros_like(pts), np.full(len(pts), material), np.full(len(pts), particle_type),
                     b[:, 0].copy(), b[:, 1].copy())
@@ -220,7 +223,7 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
     s = scene_params(spec, tier)
     dim = spec.dim
     grid = int(tier.params["grid"])
-    spacing = 0.5 / grid  # two particles per grid cell per dimension, the usual MPM sampling
+    spacing = 0.5 / grid  # the usual MPM sampling's density: 2 particles per grid cell per dimension
     bounds = np.asarray(spec.bounds, float)
     lo, hi = bounds[:, 0].copy(), bounds[:, 1].copy()
     shake = None
@@ -238,7 +241,7 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
         fill_hi[1] = min(hi[1], lo[1] + float(s["fill_height"]))
 
     emitters = inflow_emitters(spec, tier, s, lo, hi, spacing)
-    inflow = [e.particles(spacing, spec.dt, tier.sequence_length) for e in emitters]
+    inflow = [e.particles(spacing, spec.dt, tier.sequence_length, rng) for e in emitters]
 
     for _ in range(MAX_PLACEMENT_TRIES):
         polygons: list[np.ndarray] = []
@@ -345,11 +348,11 @@ def _place_blocks(s: dict[str, Any], dim: int, lo: np.ndarray, hi: np.ndarray, s
             if any(np.all(b_lo < p_hi + margin) and np.all(p_lo < b_hi + margin) for p_lo, p_hi in placed):
                 continue
             if s.get("shape", "block") == "blob":
-                pts = blob_points(b_lo, b_hi, spacing, s.get("blob_discs", [3, 5]), rng)
-                if len(pts) < 3 or solidity(pts, spacing) > BLOB_MAX_SOLIDITY:
+                pts, blob_solidity = blob_points(b_lo, b_hi, spacing, s.get("blob_discs", [3, 5]), rng)
+                if len(pts) < 3 or blob_solidity > BLOB_MAX_SOLIDITY:
                     continue
             else:
-                pts = lattice_block(b_lo, b_hi, spacing)
+                pts = random_block(b_lo, b_hi, spacing, rng)
             near = [p for p in polygons  # only obstacles within reach can be closer than 2 margins
                     if np.all(p.min(axis=0) < b_hi + 2 * margin) and np.all(b_lo - 2 * margin < p.max(axis=0))]
             if near and np.min(union_sdf(pts, near)) < 2 * margin:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -12,8 +13,16 @@ import pytest
 
 import gns_bench.physics.generate as generate_module
 import gns_bench.physics.mpm as mpm
-from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, SPLITS, content_hash, load_split, read_metadata
-from gns_bench.physics.generate import GenerationError, generate_dataset
+from gns_bench.data.format import (
+    KINEMATIC_PARTICLE_TYPE,
+    SPLITS,
+    DatasetWriter,
+    content_hash,
+    load_split,
+    read_metadata,
+)
+from gns_bench.data.generate import ensure_dataset
+from gns_bench.physics.generate import GENERATOR_VERSION, GenerationError, generate_dataset
 from gns_bench.physics.spec import list_domains, load_domain_spec
 
 
@@ -25,8 +34,10 @@ def test_domain_generates_at_smoke_tier_and_loads(domain: str, smoke_dataset: Ca
     tier = spec.tier("smoke")
     assert meta.sequence_length == tier.sequence_length and meta.dim == spec.dim
     assert meta.particle_types == spec.particle_types and meta.walls == spec.walls
-    assert meta.generator == {"name": "gns-bench", "version": meta.generator["version"], "domain": domain,
-                              "tier": "smoke", "seed": 0, "solver": spec.solver}
+    assert meta.generator == {"name": "gns-bench", "version": meta.generator["version"],
+                              "generator_version": GENERATOR_VERSION, "domain": domain, "tier": "smoke",
+                              "seed": 0, "solver": spec.solver}
+    assert not (path / generate_module.VERSION_FILE).exists()  # the partial's marker, now in the metadata
     assert np.allclose(meta.gravity, np.asarray(spec.gravity) * spec.dt**2)
     assert (meta.context_mean is not None) == (spec.context is not None)
     bounds = np.asarray(spec.bounds)
@@ -92,7 +103,7 @@ from gns_bench.physics.mpm import MaterialParams, run_scene
 from gns_bench.physics.mpm_kernels import WATER
 from gns_bench.physics.scenes import block_scene
 b = [[0.1, 0.9], [0.1, 0.9]]
-scene = block_scene(WATER, 5, [0.1, 0.1], [0.5, 0.6], b, 128)
+scene = block_scene(WATER, 5, [0.1, 0.1], [0.5, 0.6], b, 128, np.random.default_rng(0))
 # shuffled particles: every thread's chunk of the P2G loop then scatters onto every grid region
 order = np.random.default_rng(0).permutation(len(scene.position))
 scene.position, scene.velocity = scene.position[order], scene.velocity[order]
@@ -162,6 +173,71 @@ def test_a_failed_draw_is_redrawn_deterministically(tmp_path: Path, monkeypatch:
     assert np.array_equal(train[1].position, redraw.position)
     assert train[1].position.shape != first_draw.position.shape or \
         not np.array_equal(train[1].position, first_draw.position)
+
+
+def _set_generator(path: Path, **changes: object) -> None:
+    """Rewrite a dataset's metadata generator (a key set to None is removed): an older or foreign dataset."""
+    meta_path = path / "metadata.json"
+    meta = json.loads(meta_path.read_text())
+    meta["generator"].update(changes)
+    meta["generator"] = {k: v for k, v in meta["generator"].items() if v is not None}
+    meta_path.write_text(json.dumps(meta))
+
+
+def test_stale_dataset_is_moved_aside_and_generated_afresh(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                           smoke_dataset: Callable[[str], Path]) -> None:
+    """An MPM dataset from before GENERATOR_VERSION 2 (no generator_version: 1, lattice seeding) is not
+    reused: it is moved aside, never deleted, even past an earlier stale copy, and generated afresh."""
+    out = tmp_path / "waterdrop-smoke-s0"
+    shutil.copytree(smoke_dataset("waterdrop"), out)
+    _set_generator(out, generator_version=None)
+    old_meta = (out / "metadata.json").read_text()
+    earlier = tmp_path / "waterdrop-smoke-s0.stale-v1"
+    earlier.mkdir()
+    (earlier / "note").write_text("an earlier stale copy")
+    capsys.readouterr()
+    assert ensure_dataset("waterdrop", "smoke", 0, out=out, progress=False) == out
+    assert "stale, moved aside to" in capsys.readouterr().err
+    aside = tmp_path / "waterdrop-smoke-s0.stale-v1-2"
+    assert (aside / "metadata.json").read_text() == old_meta and (aside / "train.h5").is_file()
+    assert (earlier / "note").read_text() == "an earlier stale copy"
+    assert read_metadata(out).generator["generator_version"] == GENERATOR_VERSION
+    assert content_hash(out) == content_hash(smoke_dataset("waterdrop"))
+    stamp = (out / "train.h5").stat().st_mtime_ns  # now current: reused as it is
+    assert ensure_dataset("waterdrop", "smoke", 0, out=out, progress=False) == out
+    assert (out / "train.h5").stat().st_mtime_ns == stamp
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, earlier.name, aside.name])
+
+
+def test_stale_partial_dataset_is_not_resumed(tmp_path: Path, smoke_dataset: Callable[[str], Path]) -> None:
+    """An interrupted generation of an older version (no version marker) is moved aside, not completed with
+    trajectories of another seeding."""
+    out = tmp_path / "sand"
+    old = load_split(smoke_dataset("sand"), "train")[0]
+    writer = DatasetWriter(out)
+    writer.add("train", dataclasses.replace(old, position=old.position + np.float32(1e-3)))
+    assert not (writer.partial_dir / generate_module.VERSION_FILE).exists()
+    generate_dataset("sand", "smoke", seed=0, out=out, progress=False)
+    assert content_hash(out) == content_hash(smoke_dataset("sand"))
+    assert (tmp_path / "sand.partial.stale-v1" / "train.h5").is_file()
+
+
+def test_current_sph_pbd_imported_and_tiny_datasets_are_reused(tmp_path: Path,
+                                                             smoke_dataset: Callable[[str], Path]) -> None:
+    """Only data whose solver has changed since its version is stale: version-1 SPH and PBD data (their
+    lattices are kept) and datasets this generator did not make (imported, tiny) are reused untouched."""
+    cases = {"water-3d-s": {"solver": "sph", "generator_version": None},
+             "boxbath": {"solver": "pbd", "generator_version": None},
+             "waterramps": {"name": "gns-bench import", "generator_version": None},
+             "tiny": {"solver": "analytic", "domain": "tiny", "generator_version": None}}
+    for domain, changes in cases.items():
+        out = tmp_path / domain
+        shutil.copytree(smoke_dataset("waterdrop"), out)  # any small dataset: only its metadata is read
+        _set_generator(out, **changes)
+        assert generate_module.stale_generator_version(out) is None
+        assert ensure_dataset(domain, "smoke", 0, out=out, progress=False) == out
+        assert content_hash(out) == content_hash(smoke_dataset("waterdrop"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(cases)
 
 
 def test_statistics_come_from_the_generated_train_split(smoke_dataset: Callable[[str], Path]) -> None:

@@ -11,12 +11,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import Delaunay, cKDTree
 
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, SPLITS, load_split, read_metadata
-from gns_bench.physics.geometry import lattice_block, rectangle, solidity, union_sdf
+from gns_bench.physics.geometry import (
+    lattice_block,
+    random_block,
+    rectangle,
+    solidity,
+    union_sdf,
+)
 from gns_bench.physics.mpm import MaterialParams, material_params, run_scene
 from gns_bench.physics.mpm_kernels import WATER
-from gns_bench.physics.scenes import MpmScene, build_scene
+from gns_bench.physics.scenes import MpmScene, build_scene, inflow_emitters, scene_params
 from gns_bench.physics.spec import SpecError, list_domains, list_variants, load_domain_spec
 
 VARIANTS = ["boxbath-long", "boxbath-shake", "continuous-heldout", "multimaterial-blob", "multimaterial-jitter",
@@ -227,6 +234,33 @@ def test_inflow_particle_counts_match_the_stream_rate() -> None:
         assert low < len(scene.position) <= t.params["max_particles"] and len(scene.position) < high
 
 
+def test_inflow_streams_are_seeded_at_random() -> None:
+    """Each stream is i.i.d. uniform at one particle per spacing^2 (inflow.py), not rows on a lattice: taken
+    back along its straight path to when it left the nozzle, a stream is a random sample of a strip of the
+    nozzle's M cells' width, with the nearest-neighbour spread of random points; deterministic per rng."""
+    spec = load_domain_spec("waterramps-inflow").for_tier("small")
+    tier = spec.tier("small")
+    spacing, bounds = 0.5 / tier.params["grid"], np.asarray(spec.bounds)
+    emitter = inflow_emitters(spec, tier, scene_params(spec, tier), bounds[:, 0], bounds[:, 1], spacing)[0]
+    pos, birth = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(0))
+    again, _ = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(0))
+    other, _ = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(1))
+    assert np.array_equal(pos, again) and not np.array_equal(pos, other)
+    assert np.all(np.diff(birth) >= 0) and birth.min() >= emitter.start
+    unit = emitter.velocity / emitter.speed
+    rel = pos - emitter.position
+    along = rel @ unit - emitter.speed * birth * spec.dt  # where it was when the stream's time was 0
+    across = rel @ emitter.across
+    half = 0.5 * emitter.row_count(spacing) * spacing
+    assert np.all(np.abs(across) <= half) and np.ptp(across) > 0.95 * 2 * half
+    assert np.all(rel @ unit >= -1e-9) and np.all(rel @ unit <= emitter.speed * spec.dt + 1e-9)  # born ahead
+    strip = np.column_stack([along, across])
+    # the stream's density: one particle per spacing^2 of strip
+    assert len(strip) * spacing**2 == pytest.approx(np.ptp(along) * 2 * half, rel=0.01)
+    nearest = cKDTree(strip).query(strip, k=2)[0][:, 1]
+    assert nearest.std() / nearest.mean() > 0.4  # 0 on the former rows; ~0.5 for random points
+
+
 @pytest.mark.parametrize("change, key", [
     ({"position": [0.5, 0.89]}, "inflow[0].position"),  # its 6-frame pre-birth path would leave the box
     ({"material": "sand"}, "inflow[0].material"),
@@ -269,15 +303,34 @@ def test_initial_jitter_perturbs_only_the_initial_positions(smoke_dataset: Calla
     assert np.isfinite(divergence) and divergence > 0.0
 
 
+def _hull_voids(points: np.ndarray, spacing: float) -> float:
+    """Fraction of the convex hull of randomly seeded particles farther than 1.5 spacings from every
+    particle: the bays of a non-convex shape. About 0 for a convex one (a point inside it has no particle
+    within 1.5 spacings with probability exp(-pi 1.5^2) ~ 1e-3, a little more along the hull's edges)."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    grid = np.stack(np.meshgrid(*[np.arange(a, b, spacing / 4) for a, b in zip(lo, hi, strict=True)],
+                                indexing="ij"), axis=-1).reshape(-1, 2)
+    grid = grid[Delaunay(points).find_simplex(grid) >= 0]
+    return float(np.mean(cKDTree(points).query(grid)[0] > 1.5 * spacing))
+
+
 def test_blobs_are_non_convex_and_hold_both_materials(smoke_dataset: Callable[[str], Path]) -> None:
     spec = load_domain_spec("multimaterial-blob")
-    spacing = 0.5 / spec.tier("smoke").params["grid"]
-    assert solidity(lattice_block(np.zeros(2), np.array([0.2, 0.1]), spacing), spacing) == pytest.approx(1.0)
     for traj in load_split(smoke_dataset("multimaterial-blob"), "test"):
-        start = traj.position[0].astype(np.float64)
         assert set(np.unique(traj.particle_type)) == {spec.particle_types["water"], spec.particle_types["goop"]}
-        # at most 2 blobs: their union covers clearly less of its convex hull than a rectangle's 100%
-        assert solidity(start, spacing) < 0.9
+    # The shape's solidity (area / convex hull area, measured on the lattice) is what the scene bounds
+    assert solidity(lattice_block(np.zeros(2), np.array([0.2, 0.1]), 0.01), 0.01) == pytest.approx(1.0)
+    # and the random particles show it: at the small tier's size (~500-1000 particles a blob; the smoke
+    # tier's ~80 are too few to tell a bay from the seeding's gaps) their hull has bays, a rectangle's not
+    spec = spec.for_tier("small")
+    tier = spec.tier("small")
+    spacing = 0.5 / tier.params["grid"]
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        assert _hull_voids(random_block(np.zeros(2), np.array([0.2, 0.2]), spacing, rng), spacing) < 0.01
+    for i in range(4):
+        scene = build_scene(spec, tier, material_params(spec)[1], np.random.default_rng(i))
+        assert _hull_voids(scene.position, spacing) > 0.03
 
 
 def test_context_values_cycle_over_the_test_trajectories(smoke_dataset: Callable[[str], Path]) -> None:
