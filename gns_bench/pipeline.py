@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -19,6 +18,8 @@ from gns_bench.devices import resolve_device
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
 from gns_bench.evaluate.plots import plot_rollout
+from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.train import distributed
 from gns_bench.train.checkpoints import load_simulator
 from gns_bench.train.loop import train
 
@@ -91,11 +92,12 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
               ) -> RunSummary:
     """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`.
 
+    The config is resolved against the dataset first, so the run logs plain numbers (`resolve_for_dataset`).
     Under torchrun only rank 0 tracks and evaluates; the other ranks just train.
     """
     config = resolve_for_dataset(config, read_metadata(dataset_dir).default_connectivity_radius)
     out_dir = Path(out_dir)
-    if int(os.environ.get("RANK", "0")) != 0:
+    if distributed.launched_rank() != 0:
         train(config, dataset_dir, out_dir, resume=resume, progress=False)
         return RunSummary("", out_dir, None, {})
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -105,8 +107,9 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
     params = {**config.flat(), "dataset_dir": str(dataset_dir), **(extra_params or {})}
     tags = {**tracking.environment_tags(device), **_dataset_tags(dataset_dir), "kind": "train",
             **(extra_tags or {})}
-    with tracking.start_run(experiment, run_name or out_dir.name, params=None if run_id else params,
-                            tags=tags, run_id=run_id) as run:
+    tracked = (tracking.continue_run(run_id, tags=tags) if run_id
+               else tracking.start_run(experiment, run_name or out_dir.name, params=params, tags=tags))
+    with tracked as run:
         previous.write_text(run.run_id + "\n")
         run.log_dict(config.to_dict(), "config.json")
         result = train(config, dataset_dir, out_dir, resume=resume, progress=progress,
@@ -116,16 +119,28 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         run.log_artifact(result.checkpoint, "checkpoint")
         metrics: dict[str, float] = {}
         if evaluate_after:
-            simulator, _, meta = load_simulator(result.checkpoint, device)
-            trajectories = load_split(dataset_dir, config.eval.split, meta,
-                                      min_length=config.model.input_sequence_length + 1)
-            evaluation = evaluate(simulator, trajectories, config.eval, device=device, progress=progress)
-            _log_evaluation(run, evaluation, out_dir, meta.bounds, config.eval.split)
-            metrics = evaluation.metrics
+            simulator, _, _ = load_simulator(result.checkpoint, device)
+            metrics = _evaluate_into(run, simulator, dataset_dir, config.eval, out_dir, device, progress).metrics
             if config.stress.enabled:
                 metrics = {**metrics, **_stress_and_log(run, simulator, config, dataset_dir, out_dir, device,
                                                         progress)}
         return RunSummary(run.run_id, out_dir, result.checkpoint, metrics)
+
+
+def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: str | Path, eval_config: EvalConfig,
+                   out_dir: Path, device: str, progress: bool, scene_bounds: bool = False) -> Evaluation:
+    """Evaluate `simulator` on `eval_config.split` of a dataset and log it all into `run`: metrics
+    `<split>/...`, tags, and the artifacts `write_evaluation_artifacts` makes in `out_dir`.
+    `scene_bounds`: roll out inside the dataset's own walls (a larger arena than the training data's)."""
+    meta = read_metadata(dataset_dir)
+    if meta.dim != simulator.dim:
+        raise ValueError(f"{dataset_dir}: dim {meta.dim} does not match the simulator's dim {simulator.dim}")
+    trajectories = load_split(dataset_dir, eval_config.split, meta,
+                              min_length=simulator.config.input_sequence_length + 1)
+    evaluation = evaluate(simulator, trajectories, eval_config, device=device, progress=progress,
+                          bounds=meta.bounds if scene_bounds else None)
+    _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split)
+    return evaluation
 
 
 def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_dir: str | Path, out_dir: Path,
@@ -182,7 +197,7 @@ def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides
         raise ValueError("nothing to run: set stress.tests (horizon, precision, perturbation, scale) or "
                          "stress.generalisation (dataset variant ids)")
     checkpoint = Path(checkpoint)
-    out_dir = Path(out_dir) if out_dir else (checkpoint if checkpoint.is_dir() else checkpoint.parent)
+    out_dir = Path(out_dir) if out_dir else _next_to(checkpoint)
     params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}
     tags = {**tracking.environment_tags(torch_device), **_dataset_tags(dataset_dir), "kind": "stress"}
     with tracking.start_run(experiment, f"stress-{Path(dataset_dir).name}", params=params, tags=tags) as run:
@@ -190,27 +205,25 @@ def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides
         return RunSummary(run.run_id, out_dir, None, metrics)
 
 
+def _next_to(checkpoint: Path) -> Path:
+    """The run directory of a checkpoint given as a file or as its directory."""
+    return checkpoint if checkpoint.is_dir() else checkpoint.parent
+
+
 def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: EvalConfig | None = None, *,
                  out_dir: str | Path | None = None, experiment: str = DEFAULT_EXPERIMENT,
                  device: str = "auto", progress: bool = True) -> RunSummary:
-    """Evaluate a checkpoint on a dataset split as its own MLflow run."""
+    """Evaluate a checkpoint on a dataset split as its own MLflow run (rollouts inside that dataset's walls)."""
     torch_device = str(resolve_device(device))
-    simulator, config, meta = load_simulator(checkpoint, torch_device)
-    eval_config = eval_config or config.eval
+    simulator, config, _ = load_simulator(checkpoint, torch_device)
+    config = replace(config, eval=eval_config or config.eval)
     checkpoint = Path(checkpoint)
-    out_dir = Path(out_dir) if out_dir else (checkpoint if checkpoint.is_dir() else checkpoint.parent) / "evaluation"
-    data_meta = read_metadata(dataset_dir)
-    if data_meta.dim != meta.dim:
-        raise ValueError(f"{dataset_dir}: dim {data_meta.dim} does not match the checkpoint's dim {meta.dim}")
-    config.eval = eval_config
+    out_dir = Path(out_dir) if out_dir else _next_to(checkpoint) / "evaluation"
     params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}
     tags = {**tracking.environment_tags(torch_device), **_dataset_tags(dataset_dir), "kind": "evaluate"}
-    with tracking.start_run(experiment, f"evaluate-{eval_config.split}", params=params, tags=tags) as run:
-        trajectories = load_split(dataset_dir, eval_config.split, data_meta,
-                                  min_length=config.model.input_sequence_length + 1)
-        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress,
-                              bounds=data_meta.bounds)  # the scene's walls (a larger arena than in training)
-        _log_evaluation(run, evaluation, out_dir, data_meta.bounds, eval_config.split)
+    with tracking.start_run(experiment, f"evaluate-{config.eval.split}", params=params, tags=tags) as run:
+        evaluation = _evaluate_into(run, simulator, dataset_dir, config.eval, out_dir, torch_device, progress,
+                                    scene_bounds=True)
         return RunSummary(run.run_id, out_dir, None, evaluation.metrics)
 
 
@@ -239,17 +252,14 @@ def reevaluate_run(run_id: str, dataset_dir: str | Path, out_dir: str | Path, ev
     if owner != run_id:
         raise ValueError(f"{out_dir / RUN_ID_FILE}: this checkpoint belongs to MLflow run {owner}, not {run_id}")
     torch_device = str(resolve_device(device))
-    simulator, _, meta = load_simulator(checkpoint, torch_device)
+    simulator, _, _ = load_simulator(checkpoint, torch_device)
     split = eval_config.split
-    with tracking.start_run("", "", run_id=run_id) as run:
-        logged = set(run.run.data.params)
+    with tracking.continue_run(run_id) as run:
         run.log_params({k: v for k, v in Config(eval=eval_config).flat().items()
-                        if k.startswith("eval.") and k not in logged})  # fields added since it was logged
-        trajectories = load_split(dataset_dir, split, meta, min_length=simulator.config.input_sequence_length + 1)
-        evaluation = evaluate(simulator, trajectories, eval_config, device=torch_device, progress=progress)
+                        if k.startswith("eval.") and k not in run.params})  # fields added since it was logged
+        evaluation = _evaluate_into(run, simulator, dataset_dir, eval_config, out_dir, torch_device, progress)
         if "rollouts_stopped" not in evaluation.tags and not run.delete_artifact(
                 f"evaluation/{split}_monitor_states.npz"):
             run.set_tags({"stale_artifacts": f"evaluation/{split}_monitor_states.npz (from before re-evaluation)"})
-        _log_evaluation(run, evaluation, out_dir, meta.bounds, split)
         run.set_tags({"reevaluated": f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}: {reason}"})
         return RunSummary(run.run_id, out_dir, checkpoint, evaluation.metrics)

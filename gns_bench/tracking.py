@@ -14,7 +14,7 @@ import platform
 import subprocess
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,6 +125,11 @@ class Run:
     def artifact_uri(self) -> str:
         return self.run.info.artifact_uri
 
+    @property
+    def params(self) -> dict[str, str]:
+        """The params logged when the run was started or continued (as strings)."""
+        return dict(self.run.data.params)
+
     def log_metrics(self, metrics: dict[str, float], step: int | None = None) -> None:
         clean = {k: float(v) for k, v in metrics.items() if v is not None}
         if clean:
@@ -161,19 +166,29 @@ class Run:
         return True
 
 
-@contextmanager
 def start_run(experiment: str, run_name: str, *, params: dict[str, Any] | None = None,
-              tags: dict[str, Any] | None = None, run_id: str | None = None) -> Iterator[Run]:
-    """Start a run (or continue `run_id`, e.g. a resumed training) and end it with the right status."""
+              tags: dict[str, Any] | None = None) -> AbstractContextManager[Run]:
+    """Start a new run in `experiment`; it ends FINISHED, or FAILED / KILLED with tag `error` if the block raises."""
     mlflow = _mlflow()
-    if run_id is not None:
-        active = mlflow.start_run(run_id=run_id)
-        earlier = active.data.tags.get("error")
-        if earlier is not None:  # the stop of an earlier attempt is history now, not how this run ends
-            mlflow.set_tag("resumed_after", earlier)
-            mlflow.delete_tag("error")
-    else:
-        active = mlflow.start_run(experiment_id=experiment_id(experiment), run_name=run_name)
+    return _tracked(mlflow, mlflow.start_run(experiment_id=experiment_id(experiment), run_name=run_name),
+                    params, tags)
+
+
+def continue_run(run_id: str, *, params: dict[str, Any] | None = None,
+                 tags: dict[str, Any] | None = None) -> AbstractContextManager[Run]:
+    """Continue an existing run (a resumed training, a re-evaluation); it ends as `start_run`'s do. The stop
+    of an earlier attempt (tag `error`) becomes tag `resumed_after`: history, not how this run ends."""
+    mlflow = _mlflow()
+    active = mlflow.start_run(run_id=run_id)
+    earlier = active.data.tags.get("error")
+    if earlier is not None:
+        mlflow.set_tag("resumed_after", earlier)
+        mlflow.delete_tag("error")
+    return _tracked(mlflow, active, params, tags)
+
+
+@contextmanager
+def _tracked(mlflow: Any, active: Any, params: dict[str, Any] | None, tags: dict[str, Any] | None) -> Iterator[Run]:
     handle = Run(mlflow, active)
     try:
         if params:
@@ -257,6 +272,27 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
         raise
     client.set_terminated(run_id, status="FINISHED")
     return run_id
+
+
+def get_run(run_id: str) -> RunRecord | None:
+    """One run by id; None when it does not exist in this store or was deleted."""
+    from mlflow.tracking import MlflowClient
+
+    try:
+        run = MlflowClient(tracking_uri=tracking_uri()).get_run(run_id)
+    except Exception:  # noqa: BLE001 - a run deleted for good or from another store
+        return None
+    if run.info.lifecycle_stage != "active":
+        return None
+    return RunRecord(run.info.run_id, run.info.run_name or "", run.info.status, int(run.info.start_time or 0),
+                     dict(run.data.params), dict(run.data.metrics), dict(run.data.tags))
+
+
+def delete_run(run_id: str) -> None:
+    """Mark a run deleted (MLflow keeps it restorable until its garbage collection)."""
+    from mlflow.tracking import MlflowClient
+
+    MlflowClient(tracking_uri=tracking_uri()).delete_run(run_id)
 
 
 def download_artifacts(run_id: str, artifact_path: str, dst: str | Path) -> Path | None:

@@ -1,25 +1,26 @@
 """Dispatch sweep runs through submitit: SLURM job arrays on a cluster, its local executor on one machine.
 
-Datasets are generated before dispatch (once, by the submitting process); each job trains and
-evaluates one run and logs to the submitter's tracking store.
+Datasets are generated before dispatch (once, by the submitting process); each job calls the run
+function it is given (the runner's `execute_run`, bound to the data, runs and tracking locations) on one
+planned run.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
-from gns_bench import tracking
-from gns_bench.sweep.runner import RunOutcome, execute_run
 from gns_bench.sweep.spec import PlannedRun
 
-
-def _job(run: PlannedRun, data_root: str, runs_root: str, tracking_uri: str) -> RunOutcome:
-    return execute_run(run, Path(data_root), Path(runs_root), tracking_uri, progress=False)
+Result = TypeVar("Result")
 
 
-def submit(runs: list[PlannedRun], data_root: Path, folder: Path, runs_root: Path, cluster: str | None = None,
-           timeout_min: int = 24 * 60, slurm_partition: str | None = None) -> list[RunOutcome]:
-    """Run `runs` as one job array; cluster None picks SLURM when available, else local processes."""
+def submit(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], folder: Path, cluster: str | None = None,
+           timeout_min: int = 24 * 60, slurm_partition: str | None = None) -> list[Result | str]:
+    """`job(run)` for every run as one job array (cluster None: SLURM when available, else local processes).
+    `job` must pickle (a module-level function or a partial of one). Returns each job's result, or a message
+    saying why the job died outside the run (e.g. killed by SLURM)."""
     import submitit
 
     if not runs:
@@ -31,13 +32,11 @@ def submit(runs: list[PlannedRun], data_root: Path, folder: Path, runs_root: Pat
         if slurm_partition:
             parameters["slurm_partition"] = slurm_partition
     executor.update_parameters(**parameters)
-    uri = tracking.tracking_uri()
-    data, root = str(data_root.resolve()), str(runs_root.resolve())
-    jobs = executor.map_array(_job, runs, [data] * len(runs), [root] * len(runs), [uri] * len(runs))
-    outcomes = []
-    for run, job in zip(runs, jobs, strict=True):
+    jobs = executor.map_array(job, runs)
+    results: list[Result | str] = []
+    for submitted in jobs:
         try:
-            outcomes.append(job.result())
-        except Exception as exc:  # noqa: BLE001 - a job that died outside the run (e.g. killed by SLURM)
-            outcomes.append(RunOutcome(run.name, "FAILED", error=f"job {job.job_id}: {exc}"))
-    return outcomes
+            results.append(submitted.result())
+        except Exception as exc:  # noqa: BLE001 - a job that died outside the run
+            results.append(f"job {submitted.job_id}: {exc}")
+    return results

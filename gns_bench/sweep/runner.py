@@ -17,12 +17,13 @@ import json
 import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from gns_bench import tracking
 from gns_bench.config import Config, resolve_for_dataset
 from gns_bench.data.format import read_metadata
-from gns_bench.data.generate import dataset_path, ensure_dataset
+from gns_bench.datasets import dataset_path, ensure_dataset
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 
@@ -99,17 +100,11 @@ def _resumable(out_dir: Path, key: str) -> bool:
     """An earlier attempt at this run left a checkpoint and an MLflow run that still exists (KILLED, FAILED,
     RUNNING) under the same key. A different key means the plan changed under it (a tier's budget, a new
     dataset): that attempt is another run, and this one starts afresh."""
-    from mlflow.tracking import MlflowClient
-
     id_file = out_dir / RUN_ID_FILE
     if not (id_file.exists() and (out_dir / "checkpoint.pt").exists()):
         return False
-    try:
-        run = MlflowClient(tracking_uri=tracking.tracking_uri()).get_run(id_file.read_text().strip())
-    except Exception:  # noqa: BLE001 - a run deleted for good or from another store
-        return False
-    return (run.info.lifecycle_stage == "active" and run.info.status != "FINISHED"
-            and run.data.tags.get("run_key") == key)
+    run = tracking.get_run(id_file.read_text().strip())
+    return run is not None and run.status != "FINISHED" and run.tags.get("run_key") == key
 
 
 def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri: str | None = None,
@@ -140,8 +135,6 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
     """Evaluate this sweep's finished runs again with today's evaluation, each into its own MLflow run
     (`pipeline.reevaluate_run`); the runs it holds as copies of other sweeps' runs are copied afresh from
     their sources, so re-evaluate the sweep that trained them first. Training is untouched."""
-    from mlflow.tracking import MlflowClient
-
     records = finished_keys(sweep.experiment)
     outcomes = []
     for run in runs:
@@ -156,7 +149,7 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
                 echo(f"  {run.name}: its source run {record.tags['shared_from']} is gone; copy left as it was")
                 continue
             outcomes.append(share_run(run, key, source))  # the new copy first: a failed copy ends FAILED
-            MlflowClient(tracking_uri=tracking.tracking_uri()).delete_run(record.run_id)
+            tracking.delete_run(record.run_id)
             echo(f"  {run.name}: copied afresh from {source.tags.get('sweep', '?')}/{source.name} ({source.run_id})")
             continue
         echo(f"  {run.name}: evaluating {record.run_id} again")
@@ -267,7 +260,11 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     elif launcher == "submitit":
         from gns_bench.sweep.launchers import submit
 
-        outcomes += submit(pending, data_root, runs_root / sweep.name / tier / "submitit", runs_root, cluster)
+        job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
+                      tracking_uri=tracking.tracking_uri(), progress=False)
+        results = submit(job, pending, runs_root / sweep.name / tier / "submitit", cluster)
+        outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
+                     for run, result in zip(pending, results, strict=True)]
     else:
         raise ValueError(f"unknown launcher {launcher!r}; expected 'local' or 'submitit'")
     return outcomes

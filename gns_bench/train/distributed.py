@@ -68,6 +68,11 @@ class ProcessGroup:
             self.owns_group = False
 
 
+def launched_rank() -> int:
+    """This process's rank as torchrun set it (0 when torchrun did not launch it), before any group exists."""
+    return int(os.environ.get("RANK", "0"))
+
+
 def from_environment(device: torch.device) -> ProcessGroup:
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
     if world_size == 1:
