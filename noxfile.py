@@ -9,10 +9,12 @@
     nox -s bench              the speed benchmark into reports/bench/
     nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|paper
                               e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
+    nox -s campaign-paper -- TIER   every sweep of sweeps/campaigns/paper.toml in order, then every report
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -101,16 +103,29 @@ def _sweep_session(path: Path):
     return session
 
 
-# One session per sweep file, named as gns-bench names the sweep (gns_bench/sweep/spec.py sweep_name),
-# with gns_bench.sweep.spec.SWEEP_PREFIXES copied here (this file runs before gns_bench is installed):
-# sweeps/ablations/noise_std.toml -> ablation-noise_std, sweeps/studies/learning_rate_decay.toml ->
-# study-learning_rate_decay. A new TOML is a new session; nothing here changes.
-SWEEP_PREFIXES = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
+# One session per sweep file, named as gns-bench names the sweep: gns_bench/sweep/naming.py, loaded by path
+# (this file runs before gns_bench is installed). A new TOML is a new session; nothing here changes.
+_spec = importlib.util.spec_from_file_location("sweep_naming", Path("gns_bench/sweep/naming.py"))
+_naming = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_naming)
 for _path in sorted(Path("sweeps").rglob("*.toml")):
-    if _path.name == "tiers.toml":
+    if not _naming.is_sweep_file(_path, Path("sweeps")):
         continue
-    _folder = _path.parent.name if _path.parent != Path("sweeps") else ""
-    _plain = _folder[:-1] if _folder.endswith("s") and not _folder.endswith("ss") else _folder
-    _prefix = SWEEP_PREFIXES.get(_folder, _plain)
-    _name = f"{_prefix}-{_path.stem}" if _prefix else _path.stem
+    _name = _naming.sweep_name(_path, Path("sweeps"))
     nox.session(name=_name, venv_backend="none")(_sweep_session(_path))
+
+
+def _campaign_session(path: Path):
+    def session(session: nox.Session) -> None:
+        bin_dir = shared_sweep_env(session)
+        tier = session.posargs[0] if session.posargs else "smoke"
+        session.run(str(bin_dir / "gns-bench"), "campaign", str(path), "--tier", tier, *session.posargs[1:],
+                    external=True)
+
+    session.__doc__ = f"campaign {path}: its sweeps in order, then every report (posargs: TIER [options])"
+    return session
+
+
+# One session per campaign file: sweeps/campaigns/paper.toml -> campaign-paper.
+for _path in sorted(Path("sweeps/campaigns").glob("*.toml")):
+    nox.session(name=f"campaign-{_path.stem}", venv_backend="none")(_campaign_session(_path))

@@ -1,19 +1,24 @@
-"""`gns-bench`: a thin command line over the library. Parses, calls, prints."""
+"""gns-bench: reproduce and benchmark the Graph Network-based Simulator of "Learning to Simulate Complex Physics
+with Graph Networks" (Sanchez-Gonzalez et al., ICML 2020). Generate particle datasets with real solvers, train
+and evaluate the GNS on them with every MLflow-tracked detail, run the paper's experiments as sweeps, and
+compile reports with the paper's numbers beside ours. Start with `gns-bench quickstart`.
+
+(The module itself is a thin command line over the library: it parses, calls and prints.)"""
 
 from __future__ import annotations
 
 import argparse
 import os
 import signal
-import subprocess
 import sys
 import threading
 from pathlib import Path
 
-from gns_bench.config import ConfigError
+from gns_bench.config import TIERS, ConfigError
 from gns_bench.data.format import DatasetError
 
 CONFIGS = Path(__file__).resolve().parent / "configs"
+DATASET_HELP = "dataset directory (metadata.json and train/valid/test.h5), e.g. data/goop-small-s0"
 
 
 def _add_generate(sub: argparse._SubParsersAction) -> None:
@@ -21,9 +26,9 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
                                         "or 'tiny')")
     p.add_argument("domain", help="domain id (e.g. waterdrop, sand-3d, boxbath, or tiny: no physics engine) or a "
                                   "variant in datasets/variants/ (e.g. waterramps-inflow); 'list' prints them all")
-    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"],
+    p.add_argument("--tier", default="smoke", choices=TIERS,
                    help="smoke: seconds (tests); small: ~30 min on 2 cores; paper: the paper's sizes")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="dataset seed: the same seed gives the same files")
     p.add_argument("--out", type=Path, default=None, help="dataset directory (default data/<domain>-<tier>-s<seed>)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
 
@@ -31,7 +36,7 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
 def cmd_generate(args: argparse.Namespace) -> None:
     import shutil
 
-    from gns_bench.data.generate import ensure_dataset
+    from gns_bench.datasets import ensure_dataset
 
     if args.domain == "list":
         from gns_bench.physics.spec import list_domains, list_variants
@@ -47,9 +52,9 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="draw a trajectory of a dataset as a PNG strip and a GIF")
-    p.add_argument("dataset", type=Path)
-    p.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    p.add_argument("--traj", type=int, default=0)
+    p.add_argument("dataset", type=Path, help=DATASET_HELP)
+    p.add_argument("--split", default="test", choices=["train", "valid", "test"], help="which split")
+    p.add_argument("--traj", type=int, default=0, help="trajectory index within the split")
     p.add_argument("--out", type=Path, default=None, help="output path stem (default beside the dataset)")
 
 
@@ -67,7 +72,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
                    help="deepmind: the original TFRecord release; npz: geoelements/gns")
     p.add_argument("src", type=Path, help="source directory (metadata.json + train/valid/test files)")
     p.add_argument("dst", type=Path, help="new dataset directory")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace dst if it exists")
 
 
 def cmd_import(args: argparse.Namespace) -> None:
@@ -81,7 +86,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a GNS on a dataset, tracked in MLflow",
                        description="Overrides are section.key=value, e.g. model.message_passing_steps=5 "
                                    "train.steps=1000 train.noise_std=6.7e-4")
-    p.add_argument("dataset", type=Path)
+    p.add_argument("dataset", type=Path, help=DATASET_HELP)
     p.add_argument("overrides", nargs="*", help="section.key=value overrides of the config")
     p.add_argument("--config", type=Path, default=None, help="TOML config (default: the paper's defaults)")
     p.add_argument("--out", type=Path, default=None, help="run directory (default runs/<dataset>)")
@@ -104,13 +109,14 @@ def cmd_train(args: argparse.Namespace) -> None:
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="one-step and rollout MSE of a checkpoint on a split, tracked in MLflow")
     p.add_argument("checkpoint", type=Path, help="checkpoint file or run directory")
-    p.add_argument("dataset", type=Path)
+    p.add_argument("dataset", type=Path, help=DATASET_HELP)
     p.add_argument("--split", default=None, choices=["valid", "test"], help="default: test")
-    p.add_argument("--max-trajectories", type=int, default=None)
-    p.add_argument("--rollout-steps", type=int, default=None)
-    p.add_argument("--out", type=Path, default=None)
-    p.add_argument("--experiment", default="gns-bench")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--max-trajectories", type=int, default=None, help="evaluate the first N trajectories")
+    p.add_argument("--rollout-steps", type=int, default=None, help="cut rollouts at K steps (default: whole)")
+    p.add_argument("--out", type=Path, default=None, help="where rollouts and pictures go "
+                   "(default: <run directory>/evaluation)")
+    p.add_argument("--experiment", default="gns-bench", help="MLflow experiment name")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
     p.add_argument("--into", metavar="RUN_ID", default=None,
                    help="evaluate the run directory's final checkpoint again into the MLflow run that trained it, "
                         "with that run's evaluation settings (changed only by the options given), as "
@@ -137,47 +143,30 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 
 def _add_rollout(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("rollout", help="roll a checkpoint out on one trajectory; save it with a picture")
-    p.add_argument("checkpoint", type=Path)
-    p.add_argument("dataset", type=Path)
-    p.add_argument("--split", default="test", choices=["train", "valid", "test"])
-    p.add_argument("--traj", type=int, default=0)
+    p.add_argument("checkpoint", type=Path, help="checkpoint file or run directory")
+    p.add_argument("dataset", type=Path, help=DATASET_HELP)
+    p.add_argument("--split", default="test", choices=["train", "valid", "test"], help="which split")
+    p.add_argument("--traj", type=int, default=0, help="trajectory index within the split")
     p.add_argument("--steps", type=int, default=None, help="rollout length (default: to the end)")
     p.add_argument("--out", type=Path, default=None, help="output stem (default rollout-<split>-<traj>)")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
 
 
 def cmd_rollout(args: argparse.Namespace) -> None:
-    import numpy as np
+    from gns_bench.pipeline import save_rollout
 
-    from gns_bench.data.format import load_split
-    from gns_bench.devices import resolve_device
-    from gns_bench.evaluate import metrics
-    from gns_bench.evaluate.plots import plot_rollout
-    from gns_bench.evaluate.rollout import rollout
-    from gns_bench.train.checkpoints import load_simulator
-
-    device = resolve_device(args.device)
-    simulator, config, _ = load_simulator(args.checkpoint, device)
-    trajectories = load_split(args.dataset, args.split, min_length=config.model.input_sequence_length + 1)
-    if not 0 <= args.traj < len(trajectories):
-        raise DatasetError(args.dataset / f"{args.split}.h5", f"no trajectory {args.traj} "
-                           f"(the split has {len(trajectories)})")
-    result = rollout(simulator, trajectories[args.traj], args.steps, device=device)
-    stem = args.out or Path(f"rollout-{args.split}-{args.traj}")
-    np.savez_compressed(f"{stem}.npz", predicted=result.predicted, ground_truth=result.ground_truth,
-                        initial_window=result.initial_window, particle_type=result.particle_type)
-    mse = metrics.rollout_mse(result.predicted, result.ground_truth, result.moving_mask)
-    from gns_bench.data.format import read_metadata
-
-    plot_rollout(result, f"{stem}.png", read_metadata(args.dataset).bounds, title=f"rollout MSE {mse:.3g}")
-    print(f"rollout MSE {mse:.4g} over {result.predicted.shape[0]} steps")
-    print(f"{stem}.npz\n{stem}.png")
+    saved = save_rollout(args.checkpoint, args.dataset, args.split, args.traj, args.steps, args.out, args.device)
+    print(f"rollout MSE {saved.errors['rollout_mse']:.4g} (the paper's definition; moving particles only: "
+          f"{saved.errors['rollout_mse_moving']:.4g}) over {saved.steps} steps")
+    print(f"{saved.npz}\n{saved.png}")
 
 
 def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help="run every run of a sweep spec (sweeps/**/*.toml), tracked in MLflow")
     p.add_argument("file", type=Path, help="sweep TOML, e.g. sweeps/ablations/noise_std.toml")
-    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
+    p.add_argument("--tier", default="smoke", choices=TIERS,
+                   help="budget (sweeps/tiers.toml): smoke, seconds a run; small, hours a run on 2 CPU cores; "
+                        "paper, the paper's 20M steps")
     p.add_argument("--dry-run", action="store_true", help="print the table of runs and their status; run nothing")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
@@ -196,8 +185,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="first evaluate the finished runs again from their final checkpoints, into their own MLflow "
                         "runs (tag 'reevaluated' records REASON), and copy shared runs afresh; then the sweep runs "
                         "what it lacks as usual (add --no-train to train nothing)")
-    p.add_argument("--data-root", type=Path, default=Path("data"))
-    p.add_argument("--runs-root", type=Path, default=Path("runs"))
+    p.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or made")
+    p.add_argument("--runs-root", type=Path, default=Path("runs"), help="where run directories go")
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
@@ -227,13 +216,51 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         raise SystemExit(1)
 
 
+def _add_campaign(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("campaign", help="run a campaign's sweeps in priority order (resumable), then write every "
+                                        "report", description="A campaign file (sweeps/campaigns/*.toml) lists "
+                                        "sweeps in order; each runs what it lacks, its report is written when it "
+                                        "is done, and every report at the end. Rerun the same command to resume.")
+    p.add_argument("file", type=Path, help="campaign TOML, e.g. sweeps/campaigns/paper.toml")
+    p.add_argument("--tier", default="smoke", choices=TIERS, help="the tier to run every sweep at")
+    p.add_argument("--dry-run", action="store_true", help="print every sweep's runs and their status; run nothing")
+    p.add_argument("--launcher", default="local", choices=["local", "submitit"],
+                   help="local: one run after another here; submitit: job arrays (SLURM, else local processes)")
+    p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"], help="submitit executor")
+    p.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or made")
+    p.add_argument("--runs-root", type=Path, default=Path("runs"), help="where run directories go")
+    p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
+
+
+def cmd_campaign(args: argparse.Namespace) -> None:
+    from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
+
+    campaign = load_campaign(args.file)
+    if args.dry_run:
+        plan_campaign(campaign, args.tier, args.data_root)
+        return
+    results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
+                           reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster)
+    failed = [(r.sweep, o) for r in results for o in r.outcomes if o.status == "FAILED"]
+    broken = [r for r in results if r.error]
+    done = sum(o.status in ("FINISHED", "SKIPPED", "SHARED", "REEVALUATED") for r in results for o in r.outcomes)
+    print(f"campaign {campaign.name} ({args.tier}): {len(results)} sweeps, {done} runs done, {len(failed)} failed, "
+          f"{len(broken)} sweeps that could not run")
+    for sweep, outcome in failed:
+        print(f"  FAILED {sweep}/{outcome.name}: {outcome.error}")
+    for result in broken:
+        print(f"  sweep {result.sweep}: {result.error}")
+    if failed or broken:
+        raise SystemExit(1)
+
+
 def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
                                  "'domains' for the table across all domain sweeps, 'stability' for the "
                                  "stress sweeps, or 'all': every sweep with runs at the tier, then those two")
-    p.add_argument("--tier", default="smoke", choices=["smoke", "small", "paper"])
-    p.add_argument("--reports-root", type=Path, default=Path("reports"))
+    p.add_argument("--tier", default="smoke", choices=TIERS, help="which tier's runs to compile")
+    p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
 
 
 def cmd_report(args: argparse.Namespace) -> None:
@@ -249,7 +276,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark training and rollout speed against this machine's limits")
     p.add_argument("--out", type=Path, default=Path("reports/bench"), help="where bench.json, README.md, PNG go")
     p.add_argument("--quick", action="store_true", help="small sizes: seconds, for a first look")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
     p.add_argument("--no-mlflow", action="store_true", help="do not log the results to MLflow")
 
 
@@ -264,16 +291,14 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
 def _add_ui(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("ui", help="serve the MLflow UI on 127.0.0.1")
-    p.add_argument("--port", type=int, default=5000)
+    p.add_argument("--port", type=int, default=5000, help="port on 127.0.0.1")
 
 
 def cmd_ui(args: argparse.Namespace) -> None:
-    from gns_bench.tracking import tracking_uri
+    from gns_bench.tracking import serve_ui, tracking_uri
 
-    uri = tracking_uri()
-    print(f"MLflow UI for {uri} at http://127.0.0.1:{args.port}")
-    subprocess.run([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
-                    "--host", "127.0.0.1", "--port", str(args.port)], check=False)
+    print(f"MLflow UI for {tracking_uri()} at http://127.0.0.1:{args.port} (Ctrl-C stops it)", flush=True)
+    serve_ui(args.port)
 
 
 def _add_quickstart(sub: argparse._SubParsersAction) -> None:
@@ -283,7 +308,7 @@ def _add_quickstart(sub: argparse._SubParsersAction) -> None:
 
 def cmd_quickstart(args: argparse.Namespace) -> None:
     from gns_bench.config import load_config
-    from gns_bench.data.generate import ensure_dataset
+    from gns_bench.datasets import ensure_dataset
     from gns_bench.pipeline import train_run
     from gns_bench.tracking import tracking_uri
 
@@ -311,22 +336,15 @@ def _add_stress(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, help="the dataset the model was trained on")
     p.add_argument("overrides", nargs="*", help="stress.key=value overrides")
     p.add_argument("--out", type=Path, default=None, help="where figures and curves go (default: the run directory)")
-    p.add_argument("--experiment", default="gns-bench")
-    p.add_argument("--device", default="auto")
+    p.add_argument("--experiment", default="gns-bench", help="MLflow experiment name")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
 
 
 def cmd_stress(args: argparse.Namespace) -> None:
-    from gns_bench.config import STRESS_TESTS
     from gns_bench.pipeline import stress_run
 
-    overrides = list(args.overrides)
-    bad = [o for o in overrides if not o.startswith("stress.")]
-    if bad:
-        raise ConfigError(f"stress takes only stress.* overrides, got {bad}")
-    if not any(o.startswith(("stress.tests=", "stress.generalisation=")) for o in overrides):
-        overrides.insert(0, "stress.tests=" + repr(list(STRESS_TESTS)).replace("'", '"'))
-    summary = stress_run(args.checkpoint, args.dataset, overrides, out_dir=args.out, experiment=args.experiment,
-                         device=args.device)
+    summary = stress_run(args.checkpoint, args.dataset, args.overrides, out_dir=args.out,
+                         experiment=args.experiment, device=args.device)
     print(f"MLflow run: {summary.run_id}")
     print(f"figures and curves: {(summary.out_dir / 'stress').resolve()}")
     for key, value in sorted(summary.metrics.items()):
@@ -350,6 +368,7 @@ COMMANDS = {
     "evaluate": (_add_evaluate, cmd_evaluate),
     "rollout": (_add_rollout, cmd_rollout),
     "sweep": (_add_sweep, cmd_sweep),
+    "campaign": (_add_campaign, cmd_campaign),
     "report": (_add_report, cmd_report),
     "stress": (_add_stress, cmd_stress),
     "bench": (_add_bench, cmd_bench),
@@ -359,7 +378,8 @@ COMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gns-bench", description=__doc__)
+    parser = argparse.ArgumentParser(prog="gns-bench", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     for add, _ in COMMANDS.values():
         add(sub)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -12,16 +13,26 @@ from typing import Any
 import numpy as np
 
 from gns_bench import tracking
-from gns_bench.config import Config, EvalConfig, resolve_for_dataset, saved_config
-from gns_bench.data.format import load_split, read_metadata
+from gns_bench.config import (
+    STRESS_TESTS,
+    Config,
+    ConfigError,
+    EvalConfig,
+    apply_overrides,
+    config_from_dict,
+    resolve_for_dataset,
+    saved_config,
+)
+from gns_bench.data.format import DatasetError, load_split, read_metadata
 from gns_bench.devices import resolve_device
-from gns_bench.evaluate.evaluate import Evaluation, evaluate, save_rollouts
+from gns_bench.evaluate.evaluate import Evaluation, evaluate, rollout_errors, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
 from gns_bench.evaluate.plots import plot_rollout
+from gns_bench.evaluate.rollout import rollout
 from gns_bench.model.simulator import LearnedSimulator
 from gns_bench.train import distributed
-from gns_bench.train.checkpoints import load_simulator
-from gns_bench.train.loop import train
+from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_simulator
+from gns_bench.train.loop import load_training_split, train
 
 DEFAULT_EXPERIMENT = "gns-bench"
 RUN_ID_FILE = "mlflow_run_id"
@@ -88,18 +99,26 @@ def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bo
 def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
               experiment: str = DEFAULT_EXPERIMENT, run_name: str | None = None, resume: bool = False,
               evaluate_after: bool = True, progress: bool = True,
-              extra_params: dict[str, Any] | None = None, extra_tags: dict[str, Any] | None = None
-              ) -> RunSummary:
-    """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`.
+              extra_params: dict[str, Any] | None = None, extra_tags: dict[str, Any] | None = None,
+              eval_dataset_dir: str | Path | None = None) -> RunSummary:
+    """Train (resuming the same MLflow run when `resume`), then evaluate on `config.eval.split`, of
+    `eval_dataset_dir` when given (another dataset of the domain: a study's common test set), else of the
+    training data; `train.eval_every`'s curve uses that dataset's validation split.
 
     The config is resolved against the dataset first, so the run logs plain numbers (`resolve_for_dataset`).
     Under torchrun only rank 0 tracks and evaluates; the other ranks just train.
     """
-    config = resolve_for_dataset(config, read_metadata(dataset_dir).default_connectivity_radius)
+    # Everything that can refuse the input happens before a run folder or an MLflow run exists.
+    meta = read_metadata(dataset_dir)
+    config = resolve_for_dataset(config, meta.default_connectivity_radius)
+    trajectories = load_training_split(config, dataset_dir, meta)
     out_dir = Path(out_dir)
     if distributed.launched_rank() != 0:
-        train(config, dataset_dir, out_dir, resume=resume, progress=False)
+        train(config, dataset_dir, out_dir, resume=resume, progress=False, trajectories=trajectories)
         return RunSummary("", out_dir, None, {})
+    if not resume and (out_dir / CHECKPOINT_NAME).exists():
+        raise FileExistsError(f"{out_dir / CHECKPOINT_NAME} exists; pass resume=True (--resume) or choose "
+                              "another out dir")
     out_dir.mkdir(parents=True, exist_ok=True)
     device = str(resolve_device(config.train.device))
     previous = out_dir / RUN_ID_FILE
@@ -112,19 +131,49 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
     with tracked as run:
         previous.write_text(run.run_id + "\n")
         run.log_dict(config.to_dict(), "config.json")
-        result = train(config, dataset_dir, out_dir, resume=resume, progress=progress,
-                       on_log=lambda step, metrics: run.log_metrics(metrics, step=step))
+        evaluated_on = eval_dataset_dir or dataset_dir
+        if eval_dataset_dir is not None:
+            run.set_tags({f"eval_{key}": value for key, value in _dataset_tags(eval_dataset_dir).items()})
+        on_eval = _curve_logger(run, config, evaluated_on, device) if config.train.eval_every else None
+        result = train(config, dataset_dir, out_dir, resume=resume, progress=progress, trajectories=trajectories,
+                       on_log=lambda step, metrics: run.log_metrics(metrics, step=step), on_eval=on_eval)
         run.log_metrics({"train/steps_per_second": result.steps_per_second,
-                         "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s})
+                         "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s,
+                         "train/curve_eval_seconds": result.eval_seconds})
         run.log_artifact(result.checkpoint, "checkpoint")
         metrics: dict[str, float] = {}
         if evaluate_after:
             simulator, _, _ = load_simulator(result.checkpoint, device)
-            metrics = _evaluate_into(run, simulator, dataset_dir, config.eval, out_dir, device, progress).metrics
+            metrics = _evaluate_into(run, simulator, evaluated_on, config.eval, out_dir, device, progress).metrics
             if config.stress.enabled:
                 metrics = {**metrics, **_stress_and_log(run, simulator, config, dataset_dir, out_dir, device,
                                                         progress)}
         return RunSummary(run.run_id, out_dir, result.checkpoint, metrics)
+
+
+# What the error-against-training-time curve logs (`curve/<name>` at the training step, beside
+# `curve/train_seconds`): the paper's MSEs, the like-for-like baseline, and rollouts a monitor stopped.
+CURVE_METRICS = ("rollout_mse", "rollout_mse_moving", "baseline_cv_same_steps_mse", "one_step_mse", "mse_h10",
+                 "mse_h100", "rollout_steps", "rollout_stopped")
+
+
+def _curve_logger(run: tracking.Run, config: Config, dataset_dir: str | Path, device: str
+                  ) -> Callable[[LearnedSimulator, int, float], None]:
+    """`train`'s `on_eval`: the model on the first `train.eval_trajectories` validation trajectories, rolled
+    out `train.eval_rollout_steps` steps (no distributional metrics), logged into `run` at the step."""
+    tc = config.train
+    meta = read_metadata(dataset_dir)
+    valid = load_split(dataset_dir, "valid", meta, min_length=config.model.input_sequence_length + 1)
+    eval_config = replace(config.eval, split="valid", max_trajectories=tc.eval_trajectories,
+                          rollout_steps=tc.eval_rollout_steps, distribution_steps=0,
+                          one_step_windows=min(config.eval.one_step_windows or 20, 20))
+
+    def log_curve_point(simulator: LearnedSimulator, step: int, train_seconds: float) -> None:
+        evaluation = evaluate(simulator, valid, eval_config, device=device, progress=False)
+        run.log_metrics({f"curve/{key}": evaluation.metrics[key] for key in CURVE_METRICS
+                         if key in evaluation.metrics} | {"curve/train_seconds": train_seconds}, step=step)
+
+    return log_curve_point
 
 
 def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: str | Path, eval_config: EvalConfig,
@@ -186,16 +235,20 @@ def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_d
 def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides: list[str] | None = None, *,
                out_dir: str | Path | None = None, experiment: str = DEFAULT_EXPERIMENT, device: str = "auto",
                progress: bool = True) -> RunSummary:
-    """Stress-test a checkpoint trained on `dataset_dir` as its own MLflow run (kind "stress")."""
-    from gns_bench.config import apply_overrides, config_from_dict
+    """Stress-test a checkpoint trained on `dataset_dir` as its own MLflow run (kind "stress").
 
+    `stress_overrides` are `stress.key=value` strings over the checkpoint's config; when they name neither
+    `stress.tests` nor `stress.generalisation`, every stress test runs."""
     torch_device = str(resolve_device(device))
     simulator, config, _ = load_simulator(checkpoint, torch_device)
-    if stress_overrides:
-        config = config_from_dict(apply_overrides(config.to_dict(), stress_overrides), f"{checkpoint} + overrides")
-    if not config.stress.enabled:
-        raise ValueError("nothing to run: set stress.tests (horizon, precision, perturbation, scale) or "
-                         "stress.generalisation (dataset variant ids)")
+    changes = apply_overrides({}, stress_overrides or [])
+    if set(changes) - {"stress"}:
+        raise ConfigError(f"stress takes only stress.* overrides, got sections {sorted(set(changes) - {'stress'})}")
+    stress = changes.get("stress", {})
+    if "tests" not in stress and "generalisation" not in stress:
+        stress["tests"] = list(STRESS_TESTS)
+    config = config_from_dict({**config.to_dict(), "stress": {**config.to_dict()["stress"], **stress}},
+                              f"{checkpoint} + overrides")
     checkpoint = Path(checkpoint)
     out_dir = Path(out_dir) if out_dir else _next_to(checkpoint)
     params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}
@@ -203,6 +256,36 @@ def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides
     with tracking.start_run(experiment, f"stress-{Path(dataset_dir).name}", params=params, tags=tags) as run:
         metrics = _stress_and_log(run, simulator, config, dataset_dir, out_dir, torch_device, progress)
         return RunSummary(run.run_id, out_dir, None, metrics)
+
+
+@dataclass
+class SavedRollout:
+    npz: Path  # predicted, ground_truth, initial_window, particle_type
+    png: Path
+    steps: int
+    errors: dict[str, float]  # `evaluate.rollout_errors`: the paper's rollout MSE and the others
+
+
+def save_rollout(checkpoint: str | Path, dataset_dir: str | Path, split: str = "test", index: int = 0,
+                 steps: int | None = None, out_stem: str | Path | None = None, device: str = "auto") -> SavedRollout:
+    """Roll a checkpoint out on one trajectory of a split; save it with its ground truth (npz) and a picture,
+    `<out_stem>.npz` and `.png` (default stem `rollout-<split>-<index>`)."""
+    torch_device = resolve_device(device)
+    simulator, config, _ = load_simulator(checkpoint, torch_device)
+    meta = read_metadata(dataset_dir)
+    trajectories = load_split(dataset_dir, split, meta, min_length=config.model.input_sequence_length + 1)
+    if not 0 <= index < len(trajectories):
+        raise DatasetError(Path(dataset_dir) / f"{split}.h5", f"no trajectory {index} (the split has "
+                           f"{len(trajectories)})")
+    result = rollout(simulator, trajectories[index], steps, device=torch_device)
+    stem = Path(out_stem) if out_stem else Path(f"rollout-{split}-{index}")
+    npz = stem.with_name(stem.name + ".npz")
+    np.savez_compressed(npz, predicted=result.predicted, ground_truth=result.ground_truth,
+                        initial_window=result.initial_window, particle_type=result.particle_type)
+    errors = rollout_errors(result, trajectories[index].num_steps)
+    png = plot_rollout(result, stem.with_name(stem.name + ".png"), meta.bounds,
+                       title=f"rollout MSE {errors['rollout_mse']:.3g}")
+    return SavedRollout(npz, Path(png), result.predicted.shape[0], errors)
 
 
 def _next_to(checkpoint: Path) -> Path:

@@ -11,7 +11,9 @@ from __future__ import annotations
 import logging
 import os
 import platform
+import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import AbstractContextManager, contextmanager
@@ -223,6 +225,7 @@ class RunRecord:
     params: dict[str, str] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
     tags: dict[str, str] = field(default_factory=dict)
+    curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # metric -> (step, value), if read
 
 
 def search_runs(filter_string: str = "", experiment: str | None = None) -> list[RunRecord]:
@@ -272,6 +275,43 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
         raise
     client.set_terminated(run_id, status="FINISHED")
     return run_id
+
+
+def serve_ui(port: int = 5000) -> int:
+    """Serve the MLflow UI for this store on 127.0.0.1:`port` until it exits or this process is interrupted
+    (Ctrl-C, or SIGTERM through `cli.interrupt_on_signals`); then its whole process group goes down with it:
+    `mlflow ui` runs its web server as child processes, which outlive a plain kill of `mlflow ui` itself."""
+    process = subprocess.Popen([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", tracking_uri(),
+                                "--host", "127.0.0.1", "--port", str(port)], start_new_session=True)
+    try:
+        return process.wait()
+    finally:
+        if process.poll() is None:
+            _stop_group(process)
+
+
+def _stop_group(process: subprocess.Popen, grace_seconds: float = 10.0) -> None:
+    """SIGTERM the process group `process` leads, then SIGKILL whatever is left after the grace period."""
+    try:
+        os.killpg(process.pid, signal.SIGTERM)
+        process.wait(timeout=grace_seconds)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    except ProcessLookupError:
+        pass
+
+
+def metric_history(run_id: str, key: str) -> list[tuple[int, float]]:
+    """Every (step, value) a run logged for one metric, by step (a resumed run's repeats: the latest)."""
+    from mlflow.tracking import MlflowClient
+
+    history = MlflowClient(tracking_uri=tracking_uri()).get_metric_history(run_id, key)
+    latest: dict[int, tuple[int, float]] = {}
+    for m in history:
+        if m.step not in latest or m.timestamp >= latest[m.step][0]:
+            latest[m.step] = (m.timestamp, m.value)
+    return [(step, value) for step, (_, value) in sorted(latest.items())]
 
 
 def get_run(run_id: str) -> RunRecord | None:

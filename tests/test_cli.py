@@ -29,11 +29,16 @@ def test_every_subcommand_has_help(capsys: pytest.CaptureFixture) -> None:
 
 def test_train_evaluate_rollout_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    assert main(["train", str(tiny_dataset), *TRAIN, "--out", str(out), "--experiment", "cli-test"]) == 0
+    assert main(["train", str(tiny_dataset), *TRAIN, "train.eval_every=10", "--out", str(out),
+                 "--experiment", "cli-test"]) == 0
     run_id = (out / "mlflow_run_id").read_text().strip()
     run = client().get_run(run_id)
     assert run.info.status == "FINISHED"
     assert run.data.params["model.message_passing_steps"] == "1"
+    assert run.data.params["model.connectivity_radius"] == "0.1"  # resolved from the dataset, logged as a number
+    curve = client().get_metric_history(run_id, "curve/rollout_mse")  # error against training time
+    assert [m.step for m in curve] == [0, 10, 20]
+    assert [m.step for m in client().get_metric_history(run_id, "curve/train_seconds")] == [0, 10, 20]
     assert run.data.params["train.noise_std"] == "0.0003"
     assert run.data.tags["dataset_hash"] and run.data.tags["torch_version"] and run.data.tags["git_sha"]
     assert "test/rollout_mse" in run.data.metrics and "test/one_step_mse" in run.data.metrics
@@ -74,11 +79,24 @@ def test_failing_run_is_marked_failed(tmp_path: Path) -> None:
     assert failed.info.status == "FAILED" and "boom" in failed.data.tags["error"]
 
 
-def test_bad_dataset_gives_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_bad_dataset_gives_a_clear_error_and_leaves_nothing_behind(
+        tmp_path: Path, tiny_dataset: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import h5py
+
+    monkeypatch.chdir(tmp_path)
     assert main(["train", str(tmp_path / "nowhere"), "train.steps=1"]) == 2
     assert "nowhere/metadata.json: no such file" in capsys.readouterr().err
     assert main(["train", str(tmp_path), "model.latent_size=0"]) == 2
     assert "model.latent_size: must be > 0" in capsys.readouterr().err
+    broken = shutil.copytree(tiny_dataset, tmp_path / "broken")  # a train split with a NaN in it
+    with h5py.File(broken / "train.h5", "r+") as f:
+        f["00000/position"][3, 0, 0] = float("nan")
+    assert main(["train", str(broken), "train.steps=1", "--experiment", "refused"]) == 2
+    assert "train.h5" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()  # no run folder for input refused before training
+    assert tracking.search_runs(experiment="refused") == []  # and no MLflow run
 
 
 def test_sigterm_interrupts_like_ctrl_c() -> None:
@@ -100,3 +118,38 @@ def test_sigterm_interrupts_like_ctrl_c() -> None:
     finally:
         signal.signal(signal.SIGTERM, before[0])
         signal.signal(signal.SIGINT, before[1])
+
+
+def test_ui_stops_with_its_web_server_on_sigterm(tmp_path: Path) -> None:
+    """`gns-bench ui` runs MLflow's web server as child processes; SIGTERM to gns-bench takes them all down."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    with socket.socket() as probe:  # a free port
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    ui = subprocess.Popen([sys.executable, "-c", "from gns_bench.cli import run; raise SystemExit(run())", "ui",
+                           "--port", str(port)], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            with socket.socket() as client:
+                if client.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.5)
+        else:
+            raise AssertionError("the MLflow UI never listened")
+        server = psutil.Process(ui.pid).children(recursive=True)
+        assert server, "the UI runs in child processes"
+        ui.send_signal(signal.SIGTERM)
+        ui.wait(timeout=30)
+        gone, alive = psutil.wait_procs(server, timeout=15)
+        assert not alive, f"left running: {[p.pid for p in alive]}"
+    finally:
+        if ui.poll() is None:
+            ui.kill()

@@ -15,7 +15,7 @@ TARGET_FRACTION_OF_PEAK = 0.60
 TARGET_SEARCH_SHARE = 0.15
 TARGET_SPEEDUP = 3.0
 TARGET_MEMORY_MB = 24 * 1024
-# Paper, App. C.6 / Knowl 9: GNS on a V100, share of the step spent outside the network.
+# Paper, App. C.6: GNS on a V100, share of the step spent outside the network.
 PAPER_SEARCH_SHARE = (0.558, 0.857)
 
 

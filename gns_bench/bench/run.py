@@ -30,7 +30,7 @@ from gns_bench.bench.measure import (
 from gns_bench.config import ModelConfig
 from gns_bench.devices import resolve_device
 
-# Paper domains for the inference-time table (App. C.6): id, dim, max particles (Knowl 5), radius.
+# Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
                      ("waterramps", 2, 2300), ("continuous", 2, 4300), ("boxbath", 3, 1000),
                      ("water-3d-s", 3, 5800), ("water-3d", 3, 13000), ("goop-3d", 3, 14000), ("sand-3d", 3, 20000)]

@@ -30,14 +30,26 @@ SPLITS = ("train", "valid", "test")
 REQUIRED_FIELDS = ("position", "particle_type")
 OPTIONAL_FIELDS = ("step_context", "birth_step")
 
-# Particle type ids as in the released data (9 possible ids, REFERENCE.md). Id 3 is kinematic:
-# boundaries and obstacles, in the graph but never predicted, noised or in the loss.
+# Particle type ids as in the released data (9 possible ids: NUM_PARTICLE_TYPES in DeepMind's
+# learning_to_simulate/train.py). Id 3 is kinematic: boundaries and obstacles, in the graph but never
+# predicted, noised or in the loss.
 NUM_PARTICLE_TYPES = 9
 KINEMATIC_PARTICLE_TYPE = 3
 PARTICLE_TYPE_NAMES = {3: "kinematic", 5: "water", 6: "sand", 7: "goop", 0: "rigid"}
+# One colour per particle type for every picture gns-bench draws (datasets, rollouts, reports).
+PARTICLE_TYPE_COLOURS = {5: "#2b7bba", 6: "#d9a441", 7: "#b0378f", 3: "#555555", 0: "#d62728"}
+OTHER_TYPE_COLOUR = "#333333"  # a type without a colour of its own
 
 # Data may stray outside `bounds` by this fraction of the largest bound span before it is rejected.
 DEFAULT_BOUNDS_TOLERANCE = 0.05
+
+
+def type_colour(particle_type: int) -> str:
+    return PARTICLE_TYPE_COLOURS.get(int(particle_type), OTHER_TYPE_COLOUR)
+
+
+def type_colours(particle_type: Iterable[int]) -> list[str]:
+    return [type_colour(t) for t in particle_type]
 
 
 class DatasetError(ValueError):

@@ -15,6 +15,7 @@ import numpy as np
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, write_dataset
 from gns_bench.data.statistics import compute_statistics
 
+TINY = "tiny"  # this domain's id
 BOUNDS = np.array([[0.0, 1.0], [0.0, 1.0]])
 RADIUS = 0.1
 GRAVITY = np.array([0.0, -4e-4])  # per stored frame squared
@@ -61,8 +62,8 @@ def generate_tiny(out: str | Path, tier: str = "smoke", seed: int = 0, overwrite
     stats = compute_statistics(splits["train"])
     meta = Metadata(
         bounds=BOUNDS.tolist(), sequence_length=spec["frames"] - 1, default_connectivity_radius=RADIUS,
-        dim=2, dt=0.01, **stats, name="tiny", particle_types={"water": WATER, "kinematic": KINEMATIC_PARTICLE_TYPE},
+        dim=2, dt=0.01, **stats, name=TINY, particle_types={"water": WATER, "kinematic": KINEMATIC_PARTICLE_TYPE},
         walls=True, gravity=GRAVITY.tolist(),
-        generator={"name": "gns-bench", "domain": "tiny", "tier": tier, "seed": seed, "solver": "analytic"},
+        generator={"name": "gns-bench", "domain": TINY, "tier": tier, "seed": seed, "solver": "analytic"},
     )
     return write_dataset(out, meta, splits, overwrite=overwrite)

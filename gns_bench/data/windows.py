@@ -1,8 +1,8 @@
 """One-step training samples: windows of W+1 consecutive frames, batched as disjoint graphs.
 
-A sample is (trajectory index, t): input positions t-W+1 .. t and the target t+1 (REFERENCE.md
-'Training'). Batches are drawn from a generator seeded by (seed, step), so any step's batch can be
-rebuilt without replaying the ones before it: resuming a run is exact.
+A sample is (trajectory index, t): input positions t-W+1 .. t and the target t+1 (as in
+DeepMind's released code, learning_to_simulate/train.py). Batches are drawn from a generator seeded by
+(seed, step), so any step's batch can be rebuilt without replaying the ones before it: resuming a run is exact.
 """
 
 from __future__ import annotations

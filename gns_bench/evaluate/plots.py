@@ -10,20 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gns_bench.evaluate.rollout import RolloutResult  # noqa: E402
-
-# One colour per particle type for every picture gns-bench draws (datasets, rollouts, reports).
-TYPE_COLOURS = {5: "#2b7bba", 6: "#d9a441", 7: "#b0378f", 3: "#555555", 0: "#d62728"}
-OTHER_COLOUR = "#333333"
-
-
-def type_colour(particle_type: int) -> str:
-    return TYPE_COLOURS.get(int(particle_type), OTHER_COLOUR)
-
-
-def type_colours(particle_type: np.ndarray) -> list[str]:
-    return [type_colour(t) for t in particle_type]
-
+from gns_bench.data.format import type_colours  # noqa: E402
+from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 
 # Rollout pictures plot the x and y axes. In 2D that is the whole scene. In 3D it is a side view: every 3D
 # domain generated here has gravity along -y, so particles falling or leaking through the floor stay

@@ -1,4 +1,4 @@
-"""Rollouts (paper Sec. 4.4, Knowl 4): start from the first W frames and feed predictions back.
+"""Rollouts (paper Sec. 3.1, 4.4): start from the first W frames and feed predictions back.
 
 Kinematic particles take their positions from the ground truth at every step. Hooks see each new
 state and may stop a rollout by raising `RolloutStopped` (health monitors build on this).
@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gns_bench.data.format import Trajectory
+from gns_bench.evaluate.result import RolloutResult, RolloutStopped
 from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
 from gns_bench.model.precision import dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
@@ -27,49 +28,7 @@ class RolloutState:
     present: torch.Tensor | None = None  # [N] bool, inflow only: the particles in the scene (the others wait)
 
 
-class RolloutStopped(Exception):
-    """Raised by a hook to end a rollout early; the rollout records the step and the reason."""
-
-    def __init__(self, reason: str):
-        super().__init__(reason)
-        self.reason = reason
-
-
 Hook = Callable[[RolloutState], None]
-
-
-@dataclass
-class RolloutResult:
-    predicted: np.ndarray  # [K, N, D] predicted frames W .. W+K-1 (fewer if stopped)
-    ground_truth: np.ndarray  # [K', N, D] the true frames over the requested horizon
-    initial_window: np.ndarray  # [W, N, D]
-    particle_type: np.ndarray  # [N]
-    stopped_at: int | None = None
-    stop_reason: str | None = None
-    stopped_by: RolloutStopped | None = None  # the exception a hook raised (a monitor carries its details)
-    birth_step: np.ndarray | None = None  # [N] inflow: the frame each particle enters (None: all from the start)
-
-    @property
-    def moving_mask(self) -> np.ndarray:
-        return ~kinematic_mask(torch.from_numpy(self.particle_type)).numpy()
-
-    def shown_at(self, step: int) -> np.ndarray:
-        """[N] the particles that exist at predicted frame `step` (inflow particles from their birth frame on);
-        pictures draw these."""
-        if self.birth_step is None:
-            return np.ones(len(self.particle_type), bool)
-        return self.birth_step <= self.initial_window.shape[0] + step
-
-    def scored_mask(self, num_steps: int | None = None) -> np.ndarray:
-        """The particles whose error counts: [N] moving particles, or [K, N] moving particles present at
-        each predicted frame when particles enter over time (inflow)."""
-        moving = self.moving_mask
-        if self.birth_step is None:
-            return moving
-        k = self.predicted.shape[0] if num_steps is None else num_steps
-        w = self.initial_window.shape[0]
-        frames = np.arange(w, w + k)[:, None]
-        return moving[None] & (self.birth_step[None] <= frames - 1)
 
 
 @torch.no_grad()

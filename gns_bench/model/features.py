@@ -13,7 +13,8 @@ import torch
 
 @dataclass
 class Normalisation:
-    """Statistics from metadata.json, with the noise std added in quadrature (REFERENCE.md 'Model')."""
+    """Statistics from metadata.json, with the noise std added in quadrature (as in DeepMind's released
+    code, learning_to_simulate/train.py)."""
 
     vel_mean: torch.Tensor  # [D]
     vel_std: torch.Tensor  # [D], sqrt(vel_std^2 + sigma^2)
@@ -76,7 +77,7 @@ def normalise_context(context: torch.Tensor, norm: Normalisation) -> torch.Tenso
 
 
 def integrate(window: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
-    """Semi-implicit Euler with dt = 1 (paper Eq. in Sec. 3.1, Knowl 3): v' = v + a; p' = p + v'."""
+    """Semi-implicit Euler with dt = 1 (paper Sec. 3.1 and 4.2): v' = v + a; p' = p + v'."""
     last_position = window[:, -1]
     last_velocity = last_position - window[:, -2]
     return last_position + last_velocity + acceleration

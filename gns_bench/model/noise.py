@@ -1,4 +1,5 @@
-"""Random-walk noise on the input velocities (paper Sec. 4.3, App. B.3; REFERENCE.md 'Training').
+"""Random-walk noise on the input velocities (paper Sec. 4.3, App. B.3; as in DeepMind's released
+code, learning_to_simulate/noise_utils.py).
 
 Each of the C = W-1 input velocities gets an independent N(0, (sigma/sqrt(C))^2) increment; the
 increments are summed over time (a random walk), so the last velocity carries noise std sigma. The

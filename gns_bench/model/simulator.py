@@ -1,7 +1,8 @@
 """The learned simulator: features in, normalised acceleration out, semi-implicit Euler to positions.
 
-This is the paper's GNS (Sec. 3, App. A/B.2; REFERENCE.md 'Model'). It holds the dataset's
-normalisation statistics as buffers, so a checkpoint carries everything needed to run it.
+This is the paper's GNS (Sec. 3, App. A/B.2; details as in DeepMind's released code,
+learning_to_simulate/learned_simulator.py). It holds the dataset's normalisation statistics as buffers,
+so a checkpoint carries everything needed to run it.
 """
 
 from __future__ import annotations

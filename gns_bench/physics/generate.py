@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from gns_bench.data.format import SPLITS, DatasetWriter, Metadata, Trajectory, iter_split
-from gns_bench.data.generate import dataset_path
 from gns_bench.data.statistics import compute_statistics
 from gns_bench.physics.spec import DomainSpec, load_domain_spec
 
@@ -151,13 +150,13 @@ def set_aside(path: Path, version: int) -> Path:
     return aside
 
 
-def generate_dataset(domain: str, tier: str, seed: int = 0, out: str | Path | None = None,
-                     progress: bool = True) -> Path:
-    """Generate (or resume, or return unchanged if complete and current) `out`, default
-    `data/<domain>-<tier>-s<seed>`. A stale complete or partial dataset is moved aside first (`set_aside`)."""
+def generate_dataset(domain: str, tier: str, seed: int, out: str | Path, progress: bool = True) -> Path:
+    """Generate (or resume, or return unchanged if complete and current) the dataset `out` (where it goes by
+    default is gns_bench/datasets.py's `dataset_path`). A stale complete or partial dataset is moved aside
+    first (`set_aside`)."""
     spec = load_domain_spec(domain).for_tier(tier)
     tier_spec = spec.tier(tier)
-    out = Path(out) if out is not None else dataset_path(domain, tier, seed)
+    out = Path(out)
     if (out / "metadata.json").is_file():
         version = stale_generator_version(out)
         if version is None:

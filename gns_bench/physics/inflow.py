@@ -1,6 +1,6 @@
 """Inflow emitters of the MPM scenes: streams of material entering through nozzles (2D).
 
-The paper's generalisation scene (Knowl 7) has "multiple streams pouring continuously into an arena" of
+The paper's generalisation scene (Sec. 5.3) has "multiple streams pouring continuously into an arena" of
 8.0 x 4.0. A stream is a nozzle, a segment of width `width` centred on `position` and perpendicular to the
 stream's `velocity`, that emits M = round(width / s) particles every s / |v| seconds (s: the scenes'
 spacing) from stored frame `start` until frame `stop`: a continuous stream at the density of the scenes'
@@ -18,7 +18,7 @@ frame boundaries. Before b the solver skips it (mpm_kernels.INACTIVE).
 
 Stored positions before birth (`prebirth_path`): the straight path p_b + v (t - b) dt for the
 HISTORY_FRAMES frames t in [b - 6, b), and p_{b-6} for every earlier frame. A particle born at b thus
-has a velocity history for the learned simulator's input window (C = 5 velocities, 6 positions, Knowl 1)
+has a velocity history for the learned simulator's input window (C = 5 velocities, 6 positions, Sec. 4.2)
 and sits still before; the data's `birth_step` says from which frame it is real. The path reaches
 6 |v| dt behind the nozzle, which must lie inside the container (`Emitter.check_inside`).
 """

@@ -7,7 +7,7 @@ elastic wave speed of the domain's materials, so that the stored frames keep the
 
 The background grid has `grid` cells per unit length and covers [0, ceil(upper bound)] in each dimension:
 the unit square (cube) for the paper's domains, [0, 8] x [0, 4] for the 8.0 x 4.0 arena of the inflow
-generalisation scene (Knowl 7).
+generalisation scene (Sec. 5.3).
 
 Inflow (scenes.py `inflow`): emitted particles are preallocated and inactive (mpm_kernels.INACTIVE) until
 their birth frame, when they appear at the nozzle with the stream's velocity. Their stored positions before

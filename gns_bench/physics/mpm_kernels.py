@@ -42,13 +42,29 @@ def build_kernels(dim: int):
     scale = FIXED_POINT_SCALE
 
     @ti.func
-    def stencil_base(xp, inv_dx, top):
-        """Lower corner of the 3^d quadratic B-spline stencil, clamped (to `top`, per dimension) so that a
-        runaway particle (caught by the solver's per-frame bounds check) can never index outside the grid."""
+    def stencil(xp, inv_dx, top):
+        """The particle's 3^d-node quadratic B-spline stencil: the one place P2G and G2P take their weights from.
+
+        Returns `base`, the stencil's lower corner node, clamped (to `top`, per dimension) so that a runaway
+        particle (caught by the solver's per-frame bounds check) can never index outside the grid; `fx`, the
+        particle's position relative to `base` in cells (in [0.5, 1.5) unclamped); and `w`, a 3 x dim
+        matrix whose row i holds the 1D weights N(fx - i) of node base + i along each dimension, with
+        N(r) = 3/4 - r^2 for |r| < 1/2 and (3/2 - |r|)^2 / 2 for 1/2 <= |r| < 3/2.
+        """
         base = ti.cast(xp * inv_dx - 0.5, ti.i32)
         for d in ti.static(range(dim)):
             base[d] = ti.min(ti.max(base[d], 0), top[d])
-        return base
+        fx = xp * inv_dx - ti.cast(base, ti.f32)
+        w = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+        return base, fx, w
+
+    @ti.func
+    def node_weight(w, offset: ti.template()):
+        """Weight of node base + offset: the product over dimensions of its 1D weights (rows of `w`)."""
+        weight = 1.0
+        for d in ti.static(range(dim)):
+            weight *= w[offset[d], d]
+        return weight
 
     @ti.func
     def hencky_stress(U, sig, mu, lam):
@@ -120,16 +136,12 @@ def build_kernels(dim: int):
         for p in range(x.shape[0]):
             if material[p] == INACTIVE:
                 continue
-            base = stencil_base(x[p], inv_dx, top)
-            fx = x[p] * inv_dx - ti.cast(base, ti.f32)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            base, fx, w = stencil(x[p], inv_dx, top)
             # unit density and unit particle volume/mass ratio: force term -dt * 4/dx^2 * tau
             affine = -dt * 4.0 * inv_dx * inv_dx * tau[p] + C[p]
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * dim)))):
                 dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                weight = 1.0
-                for d in ti.static(range(dim)):
-                    weight *= w[offset[d]][d]
+                weight = node_weight(w, offset)
                 node = base + offset
                 mom = weight * (v[p] + affine @ dpos)
                 ti.atomic_add(grid_p[node], ti.cast(ti.round(mom * scale), ti.i64))
@@ -179,16 +191,12 @@ def build_kernels(dim: int):
         for p in range(x.shape[0]):
             if material[p] == INACTIVE:
                 continue
-            base = stencil_base(x[p], inv_dx, top)
-            fx = x[p] * inv_dx - ti.cast(base, ti.f32)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            base, fx, w = stencil(x[p], inv_dx, top)
             new_v = ti.Vector.zero(ti.f32, dim)
             new_C = ti.Matrix.zero(ti.f32, dim, dim)
             for offset in ti.static(ti.grouped(ti.ndrange(*([3] * dim)))):
                 dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                weight = 1.0
-                for d in ti.static(range(dim)):
-                    weight *= w[offset[d]][d]
+                weight = node_weight(w, offset)
                 g_v = grid_v[base + offset]
                 new_v += weight * g_v
                 new_C += 4.0 * inv_dx * inv_dx * weight * g_v.outer_product(dpos)

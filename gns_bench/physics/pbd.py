@@ -21,7 +21,7 @@ Position-based fluids (Macklin & Mueller 2013, their Alg. 1), per sub-step:
 Kernels: poly6 for densities and spiky for gradients (Mueller et al. 2003), support h = 2 dx; rho_0 is
 the density of a perfect lattice of spacing dx, so the initial water block starts at rest density.
 
-Shaking (the paper's FLUIDSHAKE-BOX, Knowl 10): with scene keys `shake_amplitude` [min, max] (metres)
+Shaking (the paper's FLUIDSHAKE-BOX, App. C.7): with scene keys `shake_amplitude` [min, max] (metres)
 and `shake_frequency` [min, max] (Hz) the water and the cube sit in a container `container_width` (a
 fraction of the bounds' x span) wide, centred, which moves as x_c(t) = A sin(w t) along x; A is clipped
 so that it stays inside the bounds. Its walls, floor and lid (the static particles behind each face)

@@ -16,8 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
-from gns_bench.data.format import PARTICLE_TYPE_NAMES, read_metadata  # noqa: E402
-from gns_bench.evaluate.plots import type_colour, type_colours  # noqa: E402
+from gns_bench.data.format import PARTICLE_TYPE_NAMES, read_metadata, type_colour, type_colours  # noqa: E402
 
 GIF_FRAMES = 40
 

@@ -19,7 +19,7 @@ Keys of `[scene]` (a tier may override any of them in `[tiers.<name>.scene]`):
   shape             "block" | "blob"   what a block is: a rectangle (default), or a non-convex blob, the
                                  union of `blob_discs` overlapping discs stretched to the block's size,
                                  split by a random line through its centroid between the two
-                                 `blob_materials` (the paper's unseen shapes, Knowl 7); a blob's solidity
+                                 `blob_materials` (the paper's unseen shapes, Sec. 5.2); a blob's solidity
                                  (area / convex hull area) is at most BLOB_MAX_SOLIDITY
   blob_discs        [min, max]   discs per blob (default [3, 5])
   blob_materials    [a, b]       materials of the blob's two sides (one name: the whole blob)

@@ -1,37 +1,37 @@
 """Domain specifications: one TOML file per domain in `datasets/<id>.toml`, loaded into `DomainSpec`.
 
 A domain is data, not code (STYLE.md): the file says what the paper's domain is (dimension, container,
-stored dt, connectivity radius, particle types, the Knowl 5 reference figures), how its initial
+stored dt, connectivity radius, particle types, the paper's Table 1 figures), how its initial
 conditions are randomised (`[scene]`), which materials it holds (`[materials.<name>]`), the solver's own
 parameters (a table named after the solver: `[mpm]`, `[sph]`, `[pbd]`, kept raw in `solver_params`) and
 three tiers (`[tiers.smoke]`, `[tiers.small]`, `[tiers.paper]`; a tier may set its own `bounds`, e.g. a
 CPU-sized arena for a scene whose paper tier is 8.0 x 4.0: `DomainSpec.for_tier`). An optional `[context]`
 table declares a global context drawn per trajectory (the friction angle of CONTINUOUS), with held-out
-intervals (Knowl 7) expressed as `exclude`, or a fixed grid of `values` cycled over the trajectories.
+intervals (App. C.5) expressed as `exclude`, or a fixed grid of `values` cycled over the trajectories.
 
-A variant (`datasets/variants/<id>.toml`) is a domain changed for a stress or generalisation test (Knowl 7,
-Knowl 10): `base = "<domain id>"` plus the keys and tables it overrides, deep-merged over the base's file
+A variant (`datasets/variants/<id>.toml`) is a domain changed for a stress or generalisation test (Sec. 5.3,
+App. C.7): `base = "<domain id>"` plus the keys and tables it overrides, deep-merged over the base's file
 (tables merge key by key, any other value replaces the base's); its id is its file stem. A variant draws its
 trajectories' randomness from its base's stream (`rng_domain`), so its test trajectory i starts from the
 base's test trajectory i unless it changes the scene's random draws, and it may set split counts to 0
 (an evaluation-only dataset holds only `test`).
 
-Everything is validated here, once; every error names the file and the key.
+Everything is validated here, once; every error in a spec names the file and the key, and an id with no
+spec file (`UnknownDomainError`) lists the ids there are.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from gns_bench.config import TIERS, read_toml
 from gns_bench.data.format import NUM_PARTICLE_TYPES, SPLITS
 
-TIER_NAMES = ("smoke", "small", "paper")
 SOLVERS = ("mpm", "sph", "pbd")
 DEFAULT_SPECS_DIR = Path(__file__).resolve().parents[2] / "datasets"
 VARIANTS_SUBDIR = "variants"  # datasets/variants/<id>.toml
@@ -45,9 +45,18 @@ class SpecError(ValueError):
         self.path, self.key = str(path), key
 
 
+class UnknownDomainError(ValueError):
+    """No domain or variant has this id. The message names the id and lists every domain and variant."""
+
+    def __init__(self, domain: str, domains: list[str], variants: list[str]):
+        super().__init__(f"unknown domain '{domain}'; domains: {', '.join(domains) or 'none'}; "
+                         f"variants: {', '.join(variants) or 'none'}")
+        self.domain, self.domains, self.variants = domain, list(domains), list(variants)
+
+
 @dataclass(frozen=True)
 class PaperReference:
-    """The paper's figures for this domain (Knowl 5)."""
+    """The paper's figures for this domain (Table 1)."""
 
     simulator: str
     max_particles: int
@@ -70,7 +79,7 @@ class Tier:
 class ContextSpec:
     """A scalar global context drawn per trajectory, uniform on [low, high] minus `exclude` intervals.
 
-    The exclusion applies to the splits in `exclude_splits` only (Knowl 7: train on [0, 80] degrees with
+    The exclusion applies to the splits in `exclude_splits` only (App. C.5: train on [0, 80] degrees with
     [30, 55] held out, test over the whole range). With `values` the context is not random: trajectory i
     takes values[i % len(values)] (an evaluation grid, e.g. error against friction angle). The generator
     passes `spec.for_trajectory(split, index)` to the solver, so a solver just calls
@@ -168,7 +177,7 @@ class DomainSpec:
         return self if bounds is None else dataclasses.replace(self, bounds=bounds)
 
     def for_split(self, split: str) -> DomainSpec:
-        """This spec as one split is drawn from (the context's held-out intervals, Knowl 7)."""
+        """This spec as one split is drawn from (the context's held-out intervals, App. C.5)."""
         if self.context is None:
             return self
         return dataclasses.replace(self, context=self.context.for_split(split))
@@ -245,7 +254,7 @@ def _load_tiers(r: _Reader, *, variant: bool) -> dict[str, Tier]:
     """A domain needs trajectories in every split; a variant may leave splits empty (evaluation only)."""
     tiers_r = r.sub("tiers")
     tiers = {}
-    for name in TIER_NAMES:
+    for name in TIERS:
         t = tiers_r.sub(name)
         length = t.positive("sequence_length", int)
         if length < 20 and name != "smoke":
@@ -265,9 +274,9 @@ def _load_tiers(r: _Reader, *, variant: bool) -> dict[str, Tier]:
         if "bounds" in params:  # a tier may shrink or grow the arena (e.g. a CPU-sized inflow scene)
             params["bounds"] = _bounds(t, "bounds", len(r.get("bounds", list)))
         tiers[name] = Tier(name, length, counts, params)
-    unknown = sorted(set(tiers_r.table) - set(TIER_NAMES))
+    unknown = sorted(set(tiers_r.table) - set(TIERS))
     if unknown:
-        raise tiers_r.fail(unknown[0], f"unknown tier; expected {TIER_NAMES}")
+        raise tiers_r.fail(unknown[0], f"unknown tier; expected {TIERS}")
     return tiers
 
 
@@ -311,12 +320,7 @@ def _check_context_values(c: _Reader, context: ContextSpec, tiers: dict[str, Tie
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text())
-    except FileNotFoundError as exc:
-        raise SpecError(path, "<file>", "no such spec file") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(path, "<file>", f"invalid TOML: {exc}") from exc
+    return read_toml(path, lambda message: SpecError(path, "<file>", message.removeprefix(f"{path}: ")))
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -424,8 +428,5 @@ def load_domain_spec(domain_id: str, specs_dir: str | Path | None = None) -> Dom
     if not path.is_file() and variant_path.is_file():
         path = variant_path
     if not path.is_file():
-        known = ", ".join(list_domains(specs_dir)) or "none"
-        variants = ", ".join(list_variants(specs_dir)) or "none"
-        raise SpecError(path, "<file>", f"no spec for domain '{domain_id}' (known domains: {known}; "
-                        f"variants: {variants})")
+        raise UnknownDomainError(domain_id, list_domains(specs_dir), list_variants(specs_dir))
     return load_spec_file(path)

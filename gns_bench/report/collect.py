@@ -1,4 +1,5 @@
-"""Match a sweep's planned runs (at a tier) with the runs MLflow holds, through `gns_bench.tracking` only.
+"""Match a sweep's planned runs (at a tier) with the runs MLflow holds, and read the rollouts they logged,
+through `gns_bench.tracking` only.
 
 Every planned run yields a row, found or not: a report shows missing and failed runs instead of
 silently dropping them.
@@ -6,6 +7,8 @@ silently dropping them.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from gns_bench import tracking
+from gns_bench.evaluate.result import RolloutResult
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep
 
 METRICS = ("one_step_mse", "rollout_mse", "ot", "mmd", "kinetic_energy_error", "rollout_seconds_per_step")
@@ -77,19 +81,53 @@ def resolve_sweep(sweep: str | Path) -> SweepSpec:
 
 def domain_sweeps() -> list[SweepSpec]:
     """The 16 domain sweeps (sweeps/domains/*.toml), in file order."""
-    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.name.startswith("domain-")]
+    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "domain"]
 
 
-def collect(sweep: SweepSpec, tier: str) -> list[RunRow]:
-    """One row per planned run; the newest FINISHED MLflow run of that name wins, else the newest of any
-    status (so a failure shows), else none (missing)."""
+SUMMARY_FILE = "runs.json"  # beside each report: its runs, enough to rebuild its tables without MLflow
+CURVE_PREFIX = "curve/"  # metrics logged along training (train.eval_every), kept with their history
+
+
+def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> list[RunRow]:
+    """One row per planned run: the newest FINISHED MLflow run of that name, else the one the committed run
+    summary (`reports_root/<sweep>/<tier>/runs.json`) holds, else the newest MLflow run of any status (so a
+    failure shows), else none (missing). So a report is rebuilt from its summary when the MLflow store that
+    made it is gone, and runs finished since take their place."""
     records = tracking.search_sweep_runs(sweep.experiment, tier)
+    saved = read_run_summary(reports_root / sweep.name / tier / SUMMARY_FILE) if reports_root else {}
     rows = []
     for planned in sweep.plan(tier):
         named = [r for r in records if r.name == planned.name]  # newest first
         finished = [r for r in named if r.status == "FINISHED"]
-        rows.append(RunRow(planned, (finished or named or [None])[0]))
+        record = (finished or [saved.get(planned.name)] or [None])[0] or (named or [None])[0]
+        if record is not None and record in finished and any(k.startswith(CURVE_PREFIX) for k in record.metrics):
+            record.curves = {key: tracking.metric_history(record.run_id, key) for key in record.metrics
+                             if key.startswith(CURVE_PREFIX)}
+        rows.append(RunRow(planned, record))
     return rows
+
+
+def write_run_summary(path: Path, sweep: SweepSpec, tier: str, rows: list[RunRow]) -> Path:
+    """The rows' runs as JSON (params, final metrics, tags with hardware and timing, curves), sorted by run."""
+    runs = [dataclasses.asdict(r.record) for r in sorted(rows, key=lambda r: r.planned.name) if r.record]
+    payload = {"sweep": sweep.name, "tier": tier, "note": "written by gns-bench report; read back by it when "
+               "MLflow no longer holds these runs", "runs": runs}
+    path.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
+    return path
+
+
+def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
+    """A committed run summary by run name; empty when there is none."""
+    if not path.is_file():
+        return {}
+    try:
+        runs = json.loads(path.read_text())["runs"]
+        records = [tracking.RunRecord(**{**run, "curves": {k: [tuple(p) for p in v]
+                                                           for k, v in run.get("curves", {}).items()}})
+                   for run in runs]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a gns-bench run summary ({type(exc).__name__}: {exc})") from None
+    return {record.name: record for record in records}
 
 
 def mean_std(values: list[float]) -> tuple[float, float, int]:
@@ -102,3 +140,16 @@ def mean_std(values: list[float]) -> tuple[float, float, int]:
 
 def axis_value_label(value: Any) -> str:
     return str(value).lower() if isinstance(value, bool) else f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def load_rollouts(run_id: str, artifact_path: str, workdir: Path) -> list[RolloutResult]:
+    """The rollouts (with their ground truth) a run logged as an npz artifact; none when it has no such file."""
+    local = tracking.download_artifacts(run_id, artifact_path, workdir)
+    if local is None:
+        return []
+    with np.load(local) as data:
+        keys = sorted({k.split("/")[0] for k in data.files})
+        return [RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"], data[f"{k}/initial_window"],
+                              data[f"{k}/particle_type"],
+                              birth_step=data[f"{k}/birth_step"] if f"{k}/birth_step" in data.files else None)
+                for k in keys]

@@ -4,6 +4,7 @@ front, and rollouts (ground truth beside prediction) as PNG and GIF. Small files
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +15,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
-from gns_bench.evaluate.plots import VIEW_AXES, plot_rollout, type_colours  # noqa: E402
-from gns_bench.evaluate.rollout import RolloutResult  # noqa: E402
+from gns_bench.data.format import type_colours  # noqa: E402
+from gns_bench.evaluate.plots import VIEW_AXES, plot_rollout  # noqa: E402
+from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 
 DPI = 80
 PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot", "optimal transport"),
@@ -28,7 +30,7 @@ def _spans_decades(data: np.ndarray) -> bool:
     return bool(finite.size and (finite > 0).all() and finite.max() / finite.min() > 10)
 
 
-def _save(fig: plt.Figure, axes: np.ndarray, path: Path) -> Path:
+def _save(fig: plt.Figure, axes: Sequence[plt.Axes], path: Path) -> Path:
     """Legend on the first panel, then a tight, small PNG."""
     axes[0].legend(fontsize=7)
     fig.tight_layout()
@@ -39,6 +41,13 @@ def _save(fig: plt.Figure, axes: np.ndarray, path: Path) -> Path:
 
 def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[float, float, int]]],
                     reference: dict[str, Any], path: Path) -> Path:
+    """`draw_ablation`, saved as a PNG."""
+    fig = draw_ablation(axis, values, stats, reference)
+    return _save(fig, fig.axes, path)
+
+
+def draw_ablation(axis: str, values: list[Any], stats: dict[str, list[tuple[float, float, int]]],
+                  reference: dict[str, Any]) -> plt.Figure:
     """One panel per metric against the axis value; error bars = std over seeds; the paper's default as a
     dashed line. `stats[metric][i]` is (mean, std, seeds) for `values[i]`."""
     scale = reference.get("scale", "linear")
@@ -69,7 +78,7 @@ def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[fl
         ax.set_title(label, fontsize=9)
         ax.set_xlabel(axis.split(".")[-1], fontsize=8)
         ax.tick_params(labelsize=7)
-    return _save(fig, axes, path)
+    return fig
 
 
 def pareto_front(cost: np.ndarray, error: np.ndarray) -> np.ndarray:

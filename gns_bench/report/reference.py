@@ -1,4 +1,4 @@
-"""The paper's reference numbers, read from ONE place each: the domain specs for the Knowl 5 table
+"""The paper's reference numbers, read from ONE place each: the domain specs for the paper's Table 1
 (`datasets/<id>.toml [paper]`), `paper_reference.toml` beside this file for the rest (ablation defaults,
 CConv comparisons, inference times, the training budget)."""
 
@@ -15,7 +15,7 @@ REFERENCE_FILE = Path(__file__).with_name("paper_reference.toml")
 
 @dataclass(frozen=True)
 class DomainReference:
-    """A domain as the paper reports it (Knowl 5), plus its CConv figure where Knowl 8 gives one."""
+    """A domain as the paper reports it (Table 1), plus its CConv figure where Sec. 5.5 gives one."""
 
     id: str
     name: str
@@ -43,7 +43,7 @@ def ablation_reference(axis: str) -> dict[str, Any]:
 
 
 def inference_reference(dim: int, simulator: str) -> dict[str, Any] | None:
-    """The Knowl 9 timing range covering a domain of this dimension and simulator (e.g. "MPM (2D)"), if any."""
+    """The App. C.6 timing range covering a domain of this dimension and simulator (e.g. "MPM (2D)"), if any."""
     return next((row for row in paper_reference()["inference"]
                  if row["dim"] == dim and any(s in simulator for s in row["simulators"])), None)
 

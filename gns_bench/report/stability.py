@@ -19,10 +19,10 @@ import numpy as np
 from gns_bench import tracking
 from gns_bench.evaluate import metrics
 from gns_bench.report import figures
-from gns_bench.report.collect import RunRow, collect
-from gns_bench.report.report import budget, budget_statement, fmt, load_rollouts
-from gns_bench.stress.experiments import StressResult
+from gns_bench.report.cells import budget, budget_statement, fmt
+from gns_bench.report.collect import RunRow, collect, load_rollouts
 from gns_bench.stress.plots import plot_stress
+from gns_bench.stress.result import StressResult
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
 
 STRESS_PREFIX = "stress-"
@@ -218,10 +218,10 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
     """`reports/stability/<tier>/README.md`: every stress sweep, missing ones marked."""
     out_dir.mkdir(parents=True, exist_ok=True)
     sweeps = stress_sweeps() if sweeps is None else sweeps
-    collected = [(s, collect(s, tier)) for s in sweeps]
+    collected = [(s, collect(s, tier, out_dir.parent.parent)) for s in sweeps]
     lines = [f"# Stability and generalisation ({tier} tier)", "",
-             "The paper's stability and generalisation claims (Sec. 5.3; Knowl 7 of the summary in "
-             "`../shared/paper/`) and failure modes (App. C.7; Knowl 10), each a stress sweep in "
+             "The paper's stability and generalisation claims (Sec. 5.3) and failure "
+             "modes (App. C.7), each a stress sweep in "
              "`sweeps/stress/` run with `nox -s <sweep> -- <tier>`. Tests: `horizon` (rollouts longer than "
              "training), `precision` (fp64 / fp32 / bf16), `perturbation` (growth of a small initial "
              "perturbation, model against solver), `scale` (scenes with more particles in larger arenas); "

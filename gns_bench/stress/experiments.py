@@ -1,9 +1,9 @@
-"""The stress tests of a trained model (issue 7; the paper's Knowl 7 and 10), as functions of a simulator
+"""The stress tests of a trained model (issue 7; the paper's Sec. 5.3 and App. C.7), as functions of a simulator
 and trajectories: each returns a `StressResult` of scalar metrics, curves over rollout steps and the
 monitors that tripped. Where the scenes come from (dataset variants) is `stress/run.py`'s business.
 
 - horizon: rollouts far beyond the training sequence length (the paper's 8x), error against time, the
-  step where a monitor stopped it, and for rigid bodies the drift of pairwise distances (Knowl 10);
+  step where a monitor stopped it, and for rigid bodies the drift of pairwise distances (App. C.7);
 - precision: the same rollouts in fp64 (the reference), fp32 and bf16, and how they diverge;
 - perturbation: the growth of a small initial position perturbation in the model, against the same
   perturbation's growth in the ground-truth solver;
@@ -15,7 +15,6 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,18 +23,10 @@ from gns_bench.evaluate import metrics
 from gns_bench.evaluate.evaluate import health_monitors, one_step_mse
 from gns_bench.evaluate.rollout import RolloutResult, rollout
 from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.stress.result import StressResult
 
 RIGID_PARTICLE_TYPE = 0  # BOXBATH's rigid cube
 ONE_STEP_WINDOWS = 50  # windows per trajectory for the one-step error of each precision
-
-
-@dataclass
-class StressResult:
-    name: str
-    metrics: dict[str, float] = field(default_factory=dict)
-    curves: dict[str, list[float]] = field(default_factory=dict)  # per rollout step, NaN where not reached
-    trips: list[str] = field(default_factory=list)  # "<scene> trajectory i: <monitor> at step k: ..."
-    notes: list[str] = field(default_factory=list)
 
 
 def per_step_mse(result: RolloutResult, length: int) -> np.ndarray:
@@ -146,7 +137,8 @@ def precision(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], p
             out.trips += _trip(name, i, r)
     for name in precisions:
         out.metrics[f"one_step_mse_{name}"] = float(np.mean([  # moving particles, as the rollout curves
-            one_step_mse(simulator, t, ONE_STEP_WINDOWS, device, name).moving for t in trajectories]))
+            one_step_mse(simulator, t, ONE_STEP_WINDOWS, device, name).one_step_mse_moving
+            for t in trajectories]))
         out.curves[f"mse_{name}"] = _stack([per_step_mse(r, length) for r in results[name]])
         out.metrics[f"rollout_mse_{name}"] = float(np.nanmean(out.curves[f"mse_{name}"]))
         out.metrics[f"seconds_{name}"] = seconds[name]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gns_bench.stress.experiments import StressResult
+from gns_bench.stress.result import StressResult
 
 # curve-name prefix -> (panel title, y label, log scale)
 PANELS = {

@@ -43,7 +43,7 @@ KEY_VERSION = 3
 _MISSING = object()
 
 
-def run_key(config: Config, domain: str, dataset_hash: str) -> str:
+def run_key(config: Config, domain: str, dataset_hash: str, eval_dataset_hash: str | None = None) -> str:
     """Only the config values that differ from `Config()`'s enter the key, so adding a config field with a
     default leaves every existing run's key (and its FINISHED status) as it was. Changing an existing
     default changes what the keys that omit it mean: bump `KEY_VERSION` with it. `config` is resolved
@@ -52,14 +52,27 @@ def run_key(config: Config, domain: str, dataset_hash: str) -> str:
     config_values = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
                      for section, values in config.to_dict().items()}
     payload = {"config": config_values, "domain": domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
+    if eval_dataset_hash is not None:  # evaluated on another dataset than it trains on (a study's candidate)
+        payload["eval_dataset_hash"] = eval_dataset_hash
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
 
-def dataset_run_key(run: PlannedRun, dataset_dir: Path) -> str:
-    """`run_key` of a run on the dataset in `dataset_dir`: its config resolved against that dataset."""
-    metadata = read_metadata(dataset_dir)
+def dataset_run_key(run: PlannedRun, data_root: Path) -> str:
+    """`run_key` of a run on its datasets under `data_root`: its config resolved against the one it trains on,
+    the content hashes of that one (and of the one it is evaluated on, when that is another)."""
+    metadata = read_metadata(training_data(run, data_root))
     config = resolve_for_dataset(run.config, metadata.default_connectivity_radius)
-    return run_key(config, run.domain, metadata.content_hash or "")
+    evaluated = read_metadata(evaluation_data(run, data_root)).content_hash if run.evaluated_elsewhere else None
+    return run_key(config, run.domain, metadata.content_hash or "", evaluated)
+
+
+def training_data(run: PlannedRun, data_root: Path) -> Path:
+    return dataset_path(run.training_domain, run.dataset_tier, run.dataset_seed, data_root)
+
+
+def evaluation_data(run: PlannedRun, data_root: Path) -> Path:
+    """The dataset whose split the run is evaluated on: its training data unless the sweep names another."""
+    return dataset_path(run.domain, run.evaluated_on, run.dataset_seed, data_root)
 
 
 def finished_keys(experiment: str) -> dict[str, tracking.RunRecord]:
@@ -85,7 +98,8 @@ def trained_keys(domain: str) -> dict[str, tracking.RunRecord]:
 
 def _sweep_params(run: PlannedRun) -> dict[str, str]:
     return {"sweep.name": run.sweep, "sweep.tier": run.tier, "sweep.domain": run.domain,
-            "sweep.dataset_tier": run.dataset_tier}
+            "sweep.dataset_tier": run.dataset_tier, "sweep.dataset_domain": run.training_domain,
+            "sweep.eval_dataset_tier": run.evaluated_on}
 
 
 def _sweep_tags(run: PlannedRun, key: str) -> dict[str, str]:
@@ -112,8 +126,8 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     """Train and evaluate one planned run (its dataset must exist). Picklable for submitit."""
     if tracking_uri:
         tracking.use_tracking_uri(tracking_uri)
-    dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
-    key = dataset_run_key(run, dataset)
+    dataset = training_data(run, data_root)
+    key = dataset_run_key(run, data_root)
     out_dir = run_dir(runs_root, run)
     resume = _resumable(out_dir, key)
     if not resume and out_dir.exists():
@@ -121,6 +135,7 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     try:
         summary = train_run(
             run.config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
+            eval_dataset_dir=evaluation_data(run, data_root) if run.evaluated_elsewhere else None,
             progress=progress, extra_params=_sweep_params(run), extra_tags=_sweep_tags(run, key))
     except KeyboardInterrupt:
         raise
@@ -138,8 +153,7 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
     records = finished_keys(sweep.experiment)
     outcomes = []
     for run in runs:
-        dataset = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
-        key = dataset_run_key(run, dataset)
+        key = dataset_run_key(run, data_root)
         record = records.get(key)
         if record is None:
             continue
@@ -153,8 +167,8 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
             echo(f"  {run.name}: copied afresh from {source.tags.get('sweep', '?')}/{source.name} ({source.run_id})")
             continue
         echo(f"  {run.name}: evaluating {record.run_id} again")
-        summary = reevaluate_run(record.run_id, dataset, run_dir(runs_root, run), run.config.eval, reason=reason,
-                                 progress=progress)
+        summary = reevaluate_run(record.run_id, evaluation_data(run, data_root), run_dir(runs_root, run),
+                                 run.config.eval, reason=reason, progress=progress)
         outcomes.append(RunOutcome(run.name, "REEVALUATED", summary.run_id, metrics=summary.metrics))
     return outcomes
 
@@ -193,13 +207,15 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     status: dict[str, str] = {}
     shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
-        path = dataset_path(run.domain, run.dataset_tier, run.dataset_seed, data_root)
-        if generate:
-            ensure_dataset(run.domain, run.dataset_tier, run.dataset_seed, data_root, progress=progress)
-        if not (path / "metadata.json").exists():
+        datasets = dict.fromkeys([(run.training_domain, run.dataset_tier), (run.domain, run.evaluated_on)])
+        if generate:  # the training data, then the evaluation's
+            for domain, dataset_tier in datasets:
+                ensure_dataset(domain, dataset_tier, run.dataset_seed, data_root, progress=progress)
+        if not all((dataset_path(domain, t, run.dataset_seed, data_root) / "metadata.json").exists()
+                   for domain, t in datasets):
             status[run.name] = "dataset missing"
             continue
-        key = dataset_run_key(run, path)
+        key = dataset_run_key(run, data_root)
         if key in done:
             status[run.name] = "finished"
         elif key in trained:
@@ -212,9 +228,12 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
 
 
 def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str]) -> str:
-    header = ["#", "run", *[axis.split(".")[1] for axis in sweep.axes], "seed", "dataset", "status"]
+    header = ["#", "run", *[axis.split(".")[-1] for axis in sweep.axes], "seed", "dataset", "status"]
     rows = [[str(i), r.name, *[str(r.axes[a]) for a in sweep.axes], str(r.seed),
-             f"{r.domain}-{r.dataset_tier}-s{r.dataset_seed}", status.get(r.name, "")] for i, r in enumerate(runs)]
+             f"{r.training_domain}-{r.dataset_tier}-s{r.dataset_seed}"
+             + (f" (tested on {r.domain}-{r.evaluated_on})" if r.evaluated_elsewhere else ""),
+             status.get(r.name, "")]
+            for i, r in enumerate(runs)]
     widths = [max(len(row[c]) for row in [header, *rows]) for c in range(len(header))]
     lines = [f"sweep {sweep.name} (tier {tier}, MLflow experiment '{sweep.experiment}'): {len(runs)} runs"]
     for row in [header, *rows]:

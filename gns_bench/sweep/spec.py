@@ -1,11 +1,12 @@
 """Sweep specs: one TOML per experiment under `sweeps/`, loaded into typed, validated data.
 
-A sweep names a domain, a base config, a grid of axes (`"section.key" = [values]`) and optional
-per-tier changes. Tier budgets shared by every sweep live in `sweeps/tiers.toml`. A run's config is
-resolved in this order, later winning:
+A sweep names a domain, a base config, a grid of axes (`"section.key" = [values]`) or a list of named
+candidates (`[candidates.<name>]`, each a config of its own and optionally its own dataset tier: a study
+comparing whole configurations), and optional per-tier changes. Tier budgets shared by every sweep live in
+`sweeps/tiers.toml`. A run's config is resolved in this order, later winning:
 
     paper defaults <- sweep [config] <- tiers.toml[tier].config <- sweep [tiers.<tier>].config
-                   <- the run's axis values <- train.seed from the tier's seeds
+                   <- the run's axis values or candidate config <- train.seed from the tier's seeds
 
 Every problem is a `SweepError` naming the file and the key; every run's resolved config is validated
 when the spec loads, so a bad value fails before anything runs.
@@ -14,21 +15,19 @@ when the spec loads, so a bad value fails before anything runs.
 from __future__ import annotations
 
 import itertools
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gns_bench.config import Config, ConfigError, config_from_dict
+from gns_bench.config import TIERS, Config, ConfigError, config_from_dict, read_toml
+from gns_bench.sweep.naming import is_sweep_file, sweep_kind, sweep_name
 
-TIERS = ("smoke", "small", "paper")
 SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 TIERS_FILE = "tiers.toml"
-# sweeps/<folder>/<file>.toml is named <prefix>-<file>; a folder not listed here loses a final 's' (not 'ss').
-# noxfile.py keeps a copy (it runs before gns_bench is installed); a test checks that the two agree.
-SWEEP_PREFIXES = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
-_SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "tiers", "paper_figure"}
-_TIER_KEYS = {"dataset_tier", "seeds", "config", "grid"}
+_SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "candidates", "tiers", "paper_figure"}
+_TIER_KEYS = {"dataset_tier", "eval_dataset_tier", "seeds", "config", "grid", "candidates"}
+_CANDIDATE_KEYS = {"config", "dataset_tier", "dataset_domain", "seeds"}
+CANDIDATE_AXIS = "candidate"  # the one axis of a sweep of named candidates
 
 
 class SweepError(ValueError):
@@ -41,6 +40,18 @@ class TierSpec:
     seeds: tuple[int, ...]
     config: dict[str, dict[str, Any]] = field(default_factory=dict)
     grid: dict[str, tuple[Any, ...]] | None = None  # restricts the sweep's axis values at this tier
+    eval_dataset_tier: str | None = None  # evaluate on this tier's dataset (None: the one trained on)
+    candidates: tuple[str, ...] | None = None  # restricts the sweep's candidates at this tier
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One named configuration of a study: its config changes and, optionally, its own training data."""
+
+    config: dict[str, dict[str, Any]]
+    dataset_tier: str | None = None  # None: the tier's dataset
+    dataset_domain: str | None = None  # a variant of the sweep's domain to train on (datasets/variants/)
+    seeds: tuple[int, ...] | None = None  # None: the tier's seeds (more for the best candidates of a study)
 
 
 @dataclass(frozen=True)
@@ -54,11 +65,28 @@ class PlannedRun:
     dataset_tier: str
     dataset_seed: int
     config: Config
+    eval_dataset_tier: str | None = None  # None: evaluated on the dataset it trains on
+    dataset_domain: str | None = None  # trains on this variant of `domain` (None: the domain's own data)
+
+    @property
+    def training_domain(self) -> str:
+        return self.dataset_domain or self.domain
+
+    @property
+    def evaluated_on(self) -> str:
+        """The dataset tier of the split this run is evaluated on (of `domain` itself)."""
+        return self.eval_dataset_tier or self.dataset_tier
+
+    @property
+    def evaluated_elsewhere(self) -> bool:
+        """Whether the run is tested on another dataset than the one it trains on."""
+        return self.dataset_domain is not None or self.eval_dataset_tier is not None
 
 
 @dataclass(frozen=True)
 class SweepSpec:
-    name: str
+    name: str  # <kind>-<file stem> (sweep/naming.py)
+    kind: str  # "domain", "ablation", "stress", "study": the folder it sits in
     path: Path
     description: str
     domain: str
@@ -67,6 +95,7 @@ class SweepSpec:
     grid: dict[str, tuple[Any, ...]]
     tiers: dict[str, TierSpec]
     paper_figure: str = ""
+    candidates: dict[str, Candidate] = field(default_factory=dict)
 
     @property
     def experiment(self) -> str:
@@ -74,34 +103,55 @@ class SweepSpec:
 
     @property
     def axes(self) -> list[str]:
-        return list(self.grid)
+        return [CANDIDATE_AXIS] if self.candidates else list(self.grid)
 
     def plan(self, tier: str) -> list[PlannedRun]:
         """Every run of the grid at this tier, one per combination of axis values and seed."""
         if tier not in self.tiers:
             raise SweepError(f"{self.path}: unknown tier {tier!r}; expected one of {list(self.tiers)}")
         spec = self.tiers[tier]
-        grid = dict(self.grid)
-        if spec.grid:
-            grid.update(spec.grid)
         runs = []
-        for values in itertools.product(*grid.values()) if grid else [()]:
-            axes = dict(zip(grid, values, strict=True))
-            for seed in spec.seeds:
-                data = _merge(self.config, spec.config)
-                for key, value in axes.items():
-                    section, name = key.split(".")
-                    data.setdefault(section, {})[name] = value
+        for axes, changes, dataset_tier, dataset_domain in self._points(spec):
+            seeds = spec.seeds
+            if self.candidates and self.candidates[axes[CANDIDATE_AXIS]].seeds:
+                seeds = self.candidates[axes[CANDIDATE_AXIS]].seeds
+            for seed in seeds:
+                data = _merge(self.config, spec.config, changes)
                 data.setdefault("train", {})["seed"] = seed
-                label = ",".join(f"{key.split('.')[1]}={value}" for key, value in axes.items())
+                label = ",".join(f"{key.split('.')[-1]}={value}" for key, value in axes.items())
                 run_name = f"{label}-seed{seed}" if label else f"seed{seed}"
                 try:
                     config = config_from_dict(data, f"{self.path} (tier {tier}, run {run_name})")
                 except ConfigError as exc:
                     raise SweepError(str(exc)) from None
-                runs.append(PlannedRun(self.name, tier, run_name, axes, seed, self.domain, spec.dataset_tier,
-                                       self.dataset_seed, config))
+                train_tier = dataset_tier or spec.dataset_tier
+                evaluated = spec.eval_dataset_tier or train_tier
+                runs.append(PlannedRun(self.name, tier, run_name, axes, seed, self.domain, train_tier,
+                                       self.dataset_seed, config,
+                                       evaluated if evaluated != train_tier or dataset_domain else None,
+                                       dataset_domain))
         return runs
+
+    def _points(self, spec: TierSpec
+                ) -> list[tuple[dict[str, Any], dict[str, dict[str, Any]], str | None, str | None]]:
+        """(axis values, config changes, dataset tier or None, dataset domain or None) of every point of the
+        sweep at a tier."""
+        if self.candidates:
+            names = spec.candidates or tuple(self.candidates)
+            return [({CANDIDATE_AXIS: name}, self.candidates[name].config, self.candidates[name].dataset_tier,
+                      self.candidates[name].dataset_domain) for name in names]
+        grid = dict(self.grid)
+        if spec.grid:
+            grid.update(spec.grid)
+        points = []
+        for values in itertools.product(*grid.values()) if grid else [()]:
+            axes = dict(zip(grid, values, strict=True))
+            changes: dict[str, dict[str, Any]] = {}
+            for key, value in axes.items():
+                section, name = key.split(".")
+                changes.setdefault(section, {})[name] = value
+            points.append((axes, changes, None, None))
+        return points
 
 
 def _merge(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -110,15 +160,6 @@ def _merge(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         for section, values in layer.items():
             out.setdefault(section, {}).update(values)
     return out
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise SweepError(f"{path}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SweepError(f"{path}: invalid TOML ({exc})") from None
 
 
 def _config_table(value: Any, path: Path, where: str) -> dict[str, dict[str, Any]]:
@@ -167,14 +208,50 @@ def _tier_table(value: Any, path: Path, where: str, base: TierSpec | None) -> Ti
         raise SweepError(f"{path}: '{where}.seeds': expected a non-empty list of non-negative integers")
     config = _config_table(value.get("config", {}), path, f"{where}.config")
     grid = _grid_table(value["grid"], path, f"{where}.grid") if "grid" in value else None
+    eval_dataset_tier = value.get("eval_dataset_tier", base.eval_dataset_tier if base else None)
+    if eval_dataset_tier is not None and eval_dataset_tier not in TIERS:
+        raise SweepError(f"{path}: '{where}.eval_dataset_tier': expected one of {list(TIERS)}, "
+                         f"got {eval_dataset_tier!r}")
+    candidates = value.get("candidates")
+    if candidates is not None and (not isinstance(candidates, list) or not candidates
+                                   or not all(isinstance(c, str) for c in candidates)):
+        raise SweepError(f"{path}: '{where}.candidates': expected a non-empty list of candidate names")
     if base is not None:
         config = _merge(base.config, config)
-    return TierSpec(dataset_tier, tuple(seeds), config, grid)
+    return TierSpec(dataset_tier, tuple(seeds), config, grid, eval_dataset_tier,
+                    tuple(candidates) if candidates else None)
+
+
+def _candidates_table(value: Any, path: Path) -> dict[str, Candidate]:
+    if not isinstance(value, dict):
+        raise SweepError(f"{path}: 'candidates' must be a table of [candidates.<name>] tables")
+    candidates = {}
+    for name, table in value.items():
+        where = f"candidates.{name}"
+        if not isinstance(table, dict):
+            raise SweepError(f"{path}: '{where}' must be a table")
+        unknown = set(table) - _CANDIDATE_KEYS
+        if unknown:
+            raise SweepError(f"{path}: unknown key '{where}.{sorted(unknown)[0]}'; known keys: "
+                             f"{sorted(_CANDIDATE_KEYS)}")
+        dataset_tier = table.get("dataset_tier")
+        if dataset_tier is not None and dataset_tier not in TIERS:
+            raise SweepError(f"{path}: '{where}.dataset_tier': expected one of {list(TIERS)}, got {dataset_tier!r}")
+        dataset_domain = table.get("dataset_domain")
+        if dataset_domain is not None and not isinstance(dataset_domain, str):
+            raise SweepError(f"{path}: '{where}.dataset_domain': expected a variant id, e.g. \"goop-compact\"")
+        seeds = table.get("seeds")
+        if seeds is not None and (not isinstance(seeds, list) or not seeds
+                                  or not all(isinstance(x, int) and x >= 0 for x in seeds)):
+            raise SweepError(f"{path}: '{where}.seeds': expected a non-empty list of non-negative integers")
+        candidates[name] = Candidate(_config_table(table.get("config", {}), path, f"{where}.config"), dataset_tier,
+                                     dataset_domain, tuple(seeds) if seeds else None)
+    return candidates
 
 
 def load_tier_defaults(sweeps_dir: Path = SWEEPS_DIR) -> dict[str, TierSpec]:
     path = sweeps_dir / TIERS_FILE
-    data = _read_toml(path)
+    data = read_toml(path, SweepError)
     missing = [t for t in TIERS if t not in data]
     if missing:
         raise SweepError(f"{path}: missing tier(s) {missing}")
@@ -184,24 +261,11 @@ def load_tier_defaults(sweeps_dir: Path = SWEEPS_DIR) -> dict[str, TierSpec]:
     return {tier: _tier_table(data[tier], path, tier, None) for tier in TIERS}
 
 
-def sweep_name(path: Path, sweeps_dir: Path = SWEEPS_DIR) -> str:
-    """`sweeps/domains/goop.toml` -> `domain-goop`; `sweeps/ablations/noise_std.toml` -> `ablation-noise_std`;
-    `sweeps/studies/learning_rate_decay.toml` -> `study-learning_rate_decay`."""
-    try:
-        relative = path.resolve().relative_to(sweeps_dir.resolve())
-    except ValueError:
-        return path.stem
-    folder = relative.parts[0] if len(relative.parts) > 1 else ""
-    plain = folder[:-1] if folder.endswith("s") and not folder.endswith("ss") else folder  # tests -> test
-    prefix = SWEEP_PREFIXES.get(folder, plain)
-    return f"{prefix}-{path.stem}" if prefix else path.stem
-
-
 def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
     path = Path(path)
     sweeps_dir = sweeps_dir or _find_sweeps_dir(path)
     defaults = load_tier_defaults(sweeps_dir)
-    data = _read_toml(path)
+    data = read_toml(path, SweepError)
     unknown = set(data) - _SWEEP_KEYS
     if unknown:
         raise SweepError(f"{path}: unknown key '{sorted(unknown)[0]}'; known keys: {sorted(_SWEEP_KEYS)}")
@@ -213,6 +277,9 @@ def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
         raise SweepError(f"{path}: 'dataset_seed': expected a non-negative integer")
     config = _config_table(data.get("config", {}), path, "config")
     grid = _grid_table(data.get("grid", {}), path, "grid")
+    candidates = _candidates_table(data.get("candidates", {}), path)
+    if grid and candidates:
+        raise SweepError(f"{path}: a sweep has a [grid] of axes or [candidates], not both")
     tiers_data = data.get("tiers", {})
     if not isinstance(tiers_data, dict):
         raise SweepError(f"{path}: 'tiers' must be a table")
@@ -224,8 +291,12 @@ def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
         if spec.grid and set(spec.grid) - set(grid):
             raise SweepError(f"{path}: 'tiers.{tier}.grid' names axes {sorted(set(spec.grid) - set(grid))} "
                              "that the sweep's [grid] does not have")
-    sweep = SweepSpec(sweep_name(path, sweeps_dir), path, str(data.get("description", "")), domain, dataset_seed,
-                      config, grid, tiers, str(data.get("paper_figure", "")))
+        if spec.candidates and set(spec.candidates) - set(candidates):
+            raise SweepError(f"{path}: 'tiers.{tier}.candidates' names {sorted(set(spec.candidates) - set(candidates))}"
+                             ", which the sweep's [candidates] do not have")
+    sweep = SweepSpec(sweep_name(path, sweeps_dir), sweep_kind(path, sweeps_dir), path,
+                      str(data.get("description", "")), domain, dataset_seed, config, grid, tiers,
+                      str(data.get("paper_figure", "")), candidates)
     for tier in TIERS:
         sweep.plan(tier)  # resolves and validates every run's config now
     return sweep
@@ -240,4 +311,4 @@ def _find_sweeps_dir(path: Path) -> Path:
 
 def discover_sweeps(sweeps_dir: Path = SWEEPS_DIR) -> list[Path]:
     """Every sweep file (each becomes a nox session), sorted."""
-    return sorted(p for p in sweeps_dir.rglob("*.toml") if p.name != TIERS_FILE)
+    return sorted(p for p in sweeps_dir.rglob("*.toml") if is_sweep_file(p, sweeps_dir))

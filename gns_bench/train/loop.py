@@ -8,18 +8,21 @@ continues as if it had never stopped.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
+import statistics
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
 from gns_bench.config import Config, TrainConfig, resolve_for_dataset, saved_config
-from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, load_split, read_metadata
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.devices import resolve_device
 from gns_bench.model.features import acceleration_from_next_position
@@ -30,7 +33,8 @@ from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 
 # Train settings that may change between an interrupted run and its resumption.
-RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads"}
+RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads", "max_wall_seconds",
+                     "eval_every", "eval_trajectories", "eval_rollout_steps"}
 
 
 @dataclass
@@ -40,7 +44,8 @@ class TrainResult:
     start_step: int
     final_step: int
     steps_per_second: float
-    wall_time_s: float  # training time over every call that led to this checkpoint (resumes included)
+    wall_time_s: float  # training time (`StepClock`) over every call that led to this checkpoint (resumes too)
+    eval_seconds: float = 0.0  # spent by this call in periodic evaluation (`on_eval`), not in wall_time_s
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -61,14 +66,14 @@ def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise
                   num_moving: int | None = None, world_size: int = 1, precision: str = "fp32") -> torch.Tensor:
     """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles.
 
+    `position_noise` is `step_inputs`' (kinematic rows zero: they follow the data, Sec. 4.3).
     `model` is what runs the forward pass (the simulator itself, or its DistributedDataParallel wrapper).
     Under data parallelism each process holds part of the batch: dividing by the whole batch's
     `num_moving` and multiplying by `world_size` makes the gradient average across processes equal the
     single-process gradient of the whole batch.
     """
     moving = ~kinematic_mask(batch.particle_type)
-    noise = position_noise * moving[:, None, None]  # kinematic particles are never noised
-    window, target_next = noisy_training_pair(batch.window, batch.target, noise, position_correction)
+    window, target_next = noisy_training_pair(batch.window, batch.target, position_noise, position_correction)
     target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
     with autocast(window.device, precision):
         predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context).float()
@@ -86,16 +91,45 @@ def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: f
     """
     samples = sampler.samples(step, batch_size * world_size)
     sizes = [sampler.trajectories[t].num_particles for t, _ in samples]
-    num_moving = sum(int((sampler.trajectories[t].particle_type != KINEMATIC_PARTICLE_TYPE).sum())
-                     for t, _ in samples)
+    moving = torch.from_numpy(np.concatenate([sampler.trajectories[t].particle_type for t, _ in samples])
+                              != KINEMATIC_PARTICLE_TYPE)
     dim = sampler.trajectories[samples[0][0]].position.shape[2]
     noise = random_walk_position_noise((sum(sizes), sampler.window, dim), noise_std,
-                                       sampler.noise_generator(step))
+                                       sampler.noise_generator(step), mask=moving)  # kinematic rows: none
     first = rank * batch_size
     start = sum(sizes[:first])
     mine = samples[first:first + batch_size]
     noise = noise[start:start + sum(sizes[first:first + batch_size])]
-    return make_batch(sampler.trajectories, mine, sampler.window), noise, num_moving
+    return make_batch(sampler.trajectories, mine, sampler.window), noise, int(moving.sum())
+
+
+class StepClock:
+    """Training time: the sum of step durations, each capped at STALL_FACTOR times the median of the last
+    100 steps. A step that stalls (the process stopped with SIGSTOP while something else is timed, another
+    job's burst, swapping) adds only a few typical steps' time, so the runs of a budget study get equal
+    training time on a machine that is sometimes busy. Checkpoints and periodic evaluation happen between
+    steps and are not counted; the first steps (compilation, warm-up) count in full."""
+
+    STALL_FACTOR = 3.0
+    WARM_UP = 10  # steps counted in full before the median is trusted
+
+    def __init__(self, earlier: float = 0.0):
+        self.total = earlier  # seconds, over every call that led to this run (resumes included)
+        self._recent: collections.deque[float] = collections.deque(maxlen=100)
+
+    def add(self, seconds: float) -> float:
+        """Count one step that took `seconds`; returns what was counted."""
+        counted = seconds
+        if len(self._recent) >= self.WARM_UP:
+            counted = min(seconds, self.STALL_FACTOR * statistics.median(self._recent))
+        self._recent.append(seconds)
+        self.total += counted
+        return counted
+
+
+def load_training_split(config: Config, dataset_dir: str | Path, metadata: Metadata) -> list[Trajectory]:
+    """The train split, validated (`load_split` reports the first bad file, trajectory and field)."""
+    return load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
 
 
 def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path) -> None:
@@ -113,8 +147,14 @@ def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path
 
 def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           on_log: Callable[[int, dict[str, float]], None] | None = None,
-          progress: bool = True) -> TrainResult:
-    """Train to `config.train.steps`, checkpointing into `out_dir`. `on_log(step, metrics)` gets the loss.
+          progress: bool = True, trajectories: list[Trajectory] | None = None,
+          on_eval: Callable[[LearnedSimulator, int, float], None] | None = None) -> TrainResult:
+    """Train to `config.train.steps` (or `train.max_wall_seconds`), checkpointing into `out_dir`.
+
+    `on_log(step, metrics)` gets the loss. `on_eval(simulator, step, training_seconds)` gets, every
+    `train.eval_every` steps and at the end (and at step 0 of a fresh run), an uncompiled copy of the model in
+    eval mode; its time is not training time. `trajectories`: the dataset's train split when the caller has
+    loaded (and so validated) it already.
 
     Launched by torchrun (WORLD_SIZE > 1), it trains data-parallel: each process takes
     `train.batch_size` graphs of every step's batch; only rank 0 logs and writes checkpoints.
@@ -127,7 +167,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     progress = progress and group.is_main
     metadata = read_metadata(dataset_dir)
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
-    trajectories = load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
+    if trajectories is None:
+        trajectories = load_training_split(config, dataset_dir, metadata)
     sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed)
 
     torch.manual_seed(tc.seed)
@@ -152,21 +193,42 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     if group.is_main:
         (out_dir / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
 
+    paused = 0.0  # seconds of this call spent in periodic evaluation
+    clock = StepClock(earlier_wall_time)
+
+    def training_seconds() -> float:
+        return clock.total
+
     def checkpoint(at_step: int) -> None:
         if not group.is_main:
             return
         save_checkpoint(checkpoint_path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
-            "wall_time_s": earlier_wall_time + time.perf_counter() - started})
+            "wall_time_s": training_seconds()})
+
+    def evaluate_now(at_step: int) -> None:
+        nonlocal paused
+        if on_eval is None or not group.is_main:
+            return
+        seconds, began = clock.total, time.perf_counter()
+        snapshot = build_simulator(config, metadata).to(device)  # uncompiled, whatever trains
+        snapshot.load_state_dict(simulator.state_dict())
+        on_eval(snapshot.eval(), at_step, seconds)
+        paused += time.perf_counter() - began
 
     start_step, losses, window_losses = step, [], []
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
                desc="train")
-    started = time.perf_counter()
+    evaluating = on_eval is not None and tc.eval_every > 0
+    if evaluating and step == 0:
+        evaluate_now(0)
     simulator.train()
     try:
         while step < tc.steps:
+            if tc.max_wall_seconds is not None and clock.total >= tc.max_wall_seconds:
+                break
+            step_started = time.perf_counter()
             lr = learning_rate(step, tc)
             for param_group in optimiser.param_groups:
                 param_group["lr"] = lr
@@ -178,7 +240,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             loss.backward()
             optimiser.step()
             step += 1
-            value = float(loss.detach())
+            value = float(loss.detach())  # waits for the step to finish (a GPU's too)
+            clock.add(time.perf_counter() - step_started)
             losses.append(value)
             window_losses.append(value)
             bar.update(1)
@@ -190,6 +253,9 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
                     on_log(step, {"train_loss": mean_loss, "learning_rate": lr})
             if step % tc.checkpoint_every == 0:
                 checkpoint(step)
+            if evaluating and step % tc.eval_every == 0:
+                evaluate_now(step)
+                simulator.train()
     except KeyboardInterrupt:
         checkpoint(step)  # every completed step is kept; resume with --resume
         raise
@@ -197,7 +263,9 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         bar.close()
         del model  # a DDP wrapper must go before its process group (ProcessGroup.close), even on Ctrl-C
     checkpoint(step)
+    if evaluating and step % tc.eval_every and step > start_step:  # the last point of the curve
+        evaluate_now(step)
     group.close()
-    elapsed = time.perf_counter() - started
+    elapsed = clock.total - earlier_wall_time
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
-    return TrainResult(checkpoint_path, losses, start_step, step, rate, earlier_wall_time + elapsed)
+    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused)

@@ -12,7 +12,7 @@ from tfrecord.writer import TFRecordWriter
 from gns_bench.cli import main
 from gns_bench.data.format import DatasetError, load_split, read_metadata
 
-DEEPMIND_META = {  # WaterDropSample's fields (REFERENCE.md), with its statistics
+DEEPMIND_META = {  # WaterDropSample's metadata.json fields (DeepMind's release), with its statistics
     "bounds": [[0.1, 0.9], [0.1, 0.9]], "sequence_length": 9, "default_connectivity_radius": 0.015, "dim": 2,
     "dt": 0.0025, "vel_mean": [-4.0e-5, -2.6e-4], "vel_std": [1.37e-3, 1.31e-3], "acc_mean": [2.6e-8, 1.1e-7],
     "acc_std": [6.7e-5, 8.7e-5],

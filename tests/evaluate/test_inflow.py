@@ -1,4 +1,4 @@
-"""Inflow: particles entering a running rollout (the paper's WaterRamps generalisation scene, Knowl 7)."""
+"""Inflow: particles entering a running rollout (the paper's WaterRamps generalisation scene, Sec. 5.3)."""
 
 from __future__ import annotations
 

@@ -71,11 +71,26 @@ def test_constant_velocity_baseline_is_exact_for_uniform_motion() -> None:
     np.testing.assert_allclose(predicted, frames[6:], atol=1e-12)
 
 
-def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
+def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_dataset: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from gns_bench.evaluate import rollout as rollout_module
+    from gns_bench.model.neighbours import VerletNeighbours
+
+    made: list[VerletNeighbours] = []
+
+    class Recorded(VerletNeighbours):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            made.append(self)
+
+    monkeypatch.setattr(rollout_module, "VerletNeighbours", Recorded)
     traj = load_split(tiny_dataset, "test")[0]
     fresh = rollout(untrained, traj, 30)
-    reused = rollout(untrained, traj, 30, neighbour_skin=0.02)
+    assert not made
+    reused = rollout(untrained, traj, 30, neighbour_skin=0.1)  # the data moves up to 0.026 a step, R = 0.1
     np.testing.assert_array_equal(reused.predicted, fresh.predicted)
+    (lists,) = made  # the skin took the Verlet path: one list, searched every step, rebuilt only sometimes
+    assert lists.calls == 30 and 1 < lists.rebuilds < 30, (lists.calls, lists.rebuilds)
 
 
 def test_bf16_rollout_stays_close_to_fp32(untrained: LearnedSimulator, tiny_dataset: Path) -> None:

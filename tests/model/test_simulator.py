@@ -252,3 +252,32 @@ def test_a_config_saved_before_the_release_switches_rebuilds_the_old_model() -> 
     old_sim = LearnedSimulator(dataclasses.replace(config.model, **SMALL), metadata(walls=False, types=1), 0.0)
     assert not hasattr(old_sim, "type_embedding") and old_sim.network.node_encoder[0].in_features == 10
     assert not old_sim.network.processor[0].aggregate_messages
+
+
+def test_node_and_edge_features_closed_form() -> None:
+    """App. B.2: C = 5 velocities normalised by (mean, std); distances to the lower and upper bounds over R,
+    clipped to [-1, 1]; edges (p_sender - p_receiver) / R and its norm."""
+    from gns_bench.model.features import Normalisation, edge_features, node_features
+
+    radius = 0.1
+    bounds = torch.tensor([[0.0, 1.0], [0.0, 2.0]])
+    steps = torch.arange(6, dtype=torch.float32)[None, :, None]
+    start = torch.tensor([[[0.05, 1.0]], [[0.5, 1.97]], [[0.99, 0.5]]])
+    velocity = torch.tensor([[[0.01, 0.0]], [[0.0, 0.002]], [[0.003, 0.004]]])
+    window = start + steps * velocity  # [3, 6, 2]: constant velocities
+    norm = Normalisation(torch.tensor([0.0, 0.01]), torch.tensor([0.02, 0.04]), torch.zeros(2), torch.ones(2))
+    x = node_features(window, norm, bounds=bounds, radius=radius)
+    assert x.shape == (3, 5 * 2 + 4)
+    expected_velocity = ((velocity[:, 0] - norm.vel_mean) / norm.vel_std).repeat(1, 5)
+    torch.testing.assert_close(x[:, :10], expected_velocity)
+    last = window[:, -1]
+    lower, upper = (last - bounds[:, 0]) / radius, (bounds[:, 1] - last) / radius
+    torch.testing.assert_close(x[:, 10:], torch.cat([lower, upper], 1).clamp(-1, 1))
+    # by hand for particle 0 at (0.10, 1.00): 1.0 from the left wall (clipped), far from the others
+    torch.testing.assert_close(x[0, 10:], torch.tensor([1.0, 1.0, 1.0, 1.0]))
+    assert float(x[1, 13]) == pytest.approx(0.2, abs=1e-5)  # at (0.5, 1.98): 0.02 below the top wall, 0.2 R
+    assert float(x[2, 12]) == pytest.approx(-0.05, abs=1e-5)  # at (1.005, 0.52): past the right wall, -0.05 R
+    edges = torch.tensor([[0, 2], [1, 0]])  # senders, receivers: 0 -> 1 and 2 -> 0
+    e = edge_features(last, edges, radius, bounds=bounds)
+    displacement = torch.stack([last[0] - last[1], last[2] - last[0]]) / radius
+    torch.testing.assert_close(e, torch.cat([displacement, displacement.norm(dim=1, keepdim=True)], 1))

@@ -21,7 +21,7 @@ from gns_bench.data.format import (
     load_split,
     read_metadata,
 )
-from gns_bench.data.generate import ensure_dataset
+from gns_bench.datasets import ensure_dataset
 from gns_bench.physics.generate import GENERATOR_VERSION, GenerationError, generate_dataset
 from gns_bench.physics.spec import list_domains, load_domain_spec
 

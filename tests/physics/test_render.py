@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gns_bench.evaluate.plots import TYPE_COLOURS
+from gns_bench.data.format import PARTICLE_TYPE_COLOURS
 from gns_bench.physics.render import render_dataset
 
 
@@ -27,7 +27,7 @@ def test_render_writes_strip_and_animation(domain: str, colours: tuple[int, ...]
     strip = Image.open(png)
     assert strip.width > 3 * strip.height  # a horizontal strip of 4 frames
     for type_id in colours:
-        assert _has_colour(strip, TYPE_COLOURS[type_id]), f"no particles of type {type_id} drawn"
+        assert _has_colour(strip, PARTICLE_TYPE_COLOURS[type_id]), f"no particles of type {type_id} drawn"
     animation = Image.open(gif)
     assert animation.n_frames >= 10
 

@@ -10,9 +10,15 @@ import numpy as np
 import pytest
 
 from gns_bench.physics.mpm import simulate
-from gns_bench.physics.spec import SpecError, list_domains, load_domain_spec, load_spec_file
+from gns_bench.physics.spec import (
+    SpecError,
+    UnknownDomainError,
+    list_domains,
+    load_domain_spec,
+    load_spec_file,
+)
 
-# Knowl 5: simulator, max particles, sequence length, one-step MSE (x1e-9), rollout MSE (x1e-3)
+# Table 1 (App. C.4): simulator, max particles, sequence length, one-step MSE (x1e-9), rollout MSE (x1e-3)
 KNOWL5 = {
     "water-3d": ("sph", 3, 13000, 800, 8.66, 10.1),
     "sand-3d": ("mpm", 3, 20000, 350, 1.42, 0.554),
@@ -55,7 +61,7 @@ def test_every_domain_loads() -> None:
     for domain in domains:
         spec = load_domain_spec(domain)
         assert spec.id == domain and len(spec.bounds) == spec.dim
-        # the stored dt keeps particles moving a small fraction of R per frame (REFERENCE.md scale)
+        # the stored dt keeps particles moving a small fraction of R per frame (released WaterDrop: ~1e-3, R/15)
         assert spec.dt <= 0.01
 
 
@@ -84,8 +90,12 @@ def test_spec_errors_name_file_and_key(tmp_path: Path, old: str, new: str, key: 
 
 
 def test_unknown_domain_lists_known_ones() -> None:
-    with pytest.raises(SpecError, match="waterdrop"):
+    with pytest.raises(UnknownDomainError) as info:
         load_domain_spec("no-such-domain")
+    message = str(info.value)
+    assert message.startswith("unknown domain 'no-such-domain'") and "<file>" not in message
+    assert all(domain in message for domain in ("waterdrop", "sand-3d", "boxbath", "waterramps-long"))
+    assert info.value.domains == list_domains()
 
 
 def test_continuous_friction_angle_excludes_held_out_interval_from_train_only() -> None:

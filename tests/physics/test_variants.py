@@ -24,12 +24,19 @@ from gns_bench.physics.geometry import (
 from gns_bench.physics.mpm import MaterialParams, material_params, run_scene
 from gns_bench.physics.mpm_kernels import WATER
 from gns_bench.physics.scenes import MpmScene, build_scene, inflow_emitters, scene_params
-from gns_bench.physics.spec import SpecError, list_domains, list_variants, load_domain_spec
+from gns_bench.physics.spec import (
+    SpecError,
+    UnknownDomainError,
+    list_domains,
+    list_variants,
+    load_domain_spec,
+)
 
-VARIANTS = ["boxbath-long", "boxbath-shake", "continuous-heldout", "multimaterial-blob", "multimaterial-jitter",
+VARIANTS = ["boxbath-long", "boxbath-shake", "continuous-heldout", "goop-compact", "multimaterial-blob",
+            "multimaterial-jitter",
             "waterramps-inflow", "waterramps-jitter", "waterramps-long", "waterramps-x2", "waterramps-x34",
             "waterramps-x8"]
-TRAINABLE = {"boxbath-shake"}  # the others are evaluation-only: test split alone
+TRAINABLE = {"boxbath-shake", "goop-compact"}  # the others are evaluation-only: test split alone
 G, DT = 9.81, 0.0025
 
 
@@ -92,7 +99,7 @@ def test_variant_errors_name_file_and_key(tmp_path: Path, text: str, key: str) -
 
 
 def test_unknown_id_lists_domains_and_variants() -> None:
-    with pytest.raises(SpecError, match="waterramps-long"):
+    with pytest.raises(UnknownDomainError, match="waterramps-long"):
         load_domain_spec("waterramps-short")
 
 
@@ -186,7 +193,7 @@ def _mean_particle_count(domain: str, tier: str, draws: int) -> float:
 @pytest.mark.parametrize("variant, factor, draws", [("waterramps-x2", 2, 8), ("waterramps-x8", 8, 4),
                                                     ("waterramps-x34", 34, 2)])
 def test_scaled_arenas_hold_the_scaled_particle_counts(variant: str, factor: int, draws: int) -> None:
-    """Knowl 7's scale factors, against WATERRAMPS's small tier's mean count (1.13k: water and ramps)."""
+    """Sec. 5.3's scale factors, against WATERRAMPS's small tier's mean count (1.13k: water and ramps)."""
     base = _mean_particle_count("waterramps", "small", 80)
     assert 0.8 * factor < _mean_particle_count(variant, "small", draws) / base < 1.25 * factor
 

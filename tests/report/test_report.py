@@ -18,36 +18,29 @@ from PIL import Image
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.report import write_all_reports, write_report
-from gns_bench.report.collect import collect, domain_sweeps
+from gns_bench.report.collect import collect, domain_sweeps, load_rollouts
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
-from gns_bench.report.report import load_rollouts, write_domains_report
+from gns_bench.report.report import write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
-SMOKE = '''
-[tiers.smoke.config.model]
-latent_size = 8
-mlp_hidden_size = 8
-message_passing_steps = 1
-
-[tiers.smoke.config.eval]
-max_trajectories = 2
-'''
-DOMAIN = 'description = "tiny domain"\ndomain = "tiny"\npaper_figure = "Table 1"\n' + SMOKE
+EVAL = '\n[tiers.smoke.config.eval]\nmax_trajectories = 2\n'
+DOMAIN = 'description = "tiny domain"\ndomain = "tiny"\npaper_figure = "Table 1"\n'
 ABLATION = ('description = "noise std on tiny"\ndomain = "tiny"\npaper_figure = "Fig. 4"\n\n[grid]\n'
-            '"train.noise_std" = [0.0, 3e-4, 1e-3]\n' + SMOKE + '\n[tiers.smoke]\nseeds = [0, 1]\n'
-            'grid = { "train.noise_std" = [0.0, 3e-4] }\n')
+            '"train.noise_std" = [0.0, 3e-4, 1e-3]\n')
+ABLATION_TIER = '\n[tiers.smoke]\nseeds = [0, 1]\ngrid = { "train.noise_std" = [0.0, 3e-4] }\n'
 MAX_FIGURE_BYTES = 400_000
-DOMAIN_CELLS = 19  # columns of the Knowl 5 table
+DOMAIN_CELLS = 19  # columns of the domain table (the paper's Table 1)
 
 
 @pytest.fixture(scope="module")
-def swept(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def swept(tmp_path_factory: pytest.TempPathFactory, smoke_model: str) -> dict[str, Path]:
     """Run both sweeps once (6 tiny runs, a few seconds each) into the session's MLflow store."""
     root = tmp_path_factory.mktemp("report")
     sweeps = root / "sweeps"
-    for folder, name, text in (("domains", "tiny", DOMAIN), ("ablations", "noise_std", ABLATION)):
+    for folder, name, text in (("domains", "tiny", DOMAIN + smoke_model + EVAL),
+                               ("ablations", "noise_std", ABLATION + smoke_model + EVAL + ABLATION_TIER)):
         (sweeps / folder).mkdir(parents=True, exist_ok=True)
         (sweeps / folder / f"{name}.toml").write_text(text)
     shutil.copy(SWEEPS_DIR / "tiers.toml", sweeps / "tiers.toml")
@@ -150,7 +143,7 @@ def test_domains_aggregate_keeps_missing_domains(swept: dict[str, Path], tmp_pat
     (goop_row,) = table_rows(text, "GOOP", DOMAIN_CELLS)
     assert tiny[-2] == "ok" and goop_row[-2] == "**missing**" and goop_row[-1] == "—"
     assert goop_row[5] == "**missing**" and goop_row[6] == "2.91e-09" and goop_row[9] == "0.00189"
-    assert goop_row[11] == "—" and goop_row[12] == "0.0055"  # no run, so no baseline; CConv (Knowl 8)
+    assert goop_row[11] == "—" and goop_row[12] == "0.0055"  # no run, so no baseline; CConv (Sec. 5.5)
     check_figures(readme, {"time_vs_error.png"})
 
     every = write_report("domains", "smoke", tmp_path / "all").read_text()
@@ -185,7 +178,9 @@ def test_pareto_front_and_references() -> None:
     cost = np.array([1.0, 2.0, 3.0, 1.5, np.nan])
     error = np.array([5.0, 1.0, 0.5, 6.0, 0.1])
     assert pareto_front(cost, error).tolist() == [0, 1, 2]
-    assert ablation_reference("train.noise_std") == {"default": 3e-4, "scale": "log"}
+    noise = ablation_reference("train.noise_std")
+    assert (noise["default"], noise["scale"]) == (3e-4, "log") and [3e-4, 0.0] in noise["better"]  # Fig. 4
+    assert ablation_reference("model.latent_size")["no_effect"] is True  # App. C.1
     assert ablation_reference("model.message_passing_steps")["scale"] == "linear"
     assert domain_reference("tiny") is None
     water = domain_reference("waterdrop")
@@ -195,21 +190,45 @@ def test_pareto_front_and_references() -> None:
     assert inference_reference(3, "PBD (3D)") is None
 
 
-@pytest.mark.parametrize("axis, values", [("model.position_encoding", ["relative", "absolute"]),
-                                          ("model.shared_processor", [False, True]),
-                                          ("train.noise_std", [0.0, 1e-4, 3e-4, 1e-2])])
-def test_ablation_figure_for_categorical_and_log_axes(axis: str, values: list, tmp_path: Path) -> None:
-    from gns_bench.report.figures import PANELS, ablation_figure
+@pytest.mark.parametrize("axis, values, x, xscale, default_at", [
+    ("model.position_encoding", ["relative", "absolute"], [0, 1], "linear", 0),  # categories: 0, 1, ...
+    ("model.shared_processor", [False, True], [0, 1], "linear", 0),
+    ("train.noise_std", [0.0, 1e-4, 3e-4, 1e-2], [0.0, 1e-4, 3e-4, 1e-2], "symlog", 3e-4),  # log, with 0
+])
+def test_ablation_figure_for_categorical_and_log_axes(axis: str, values: list, x: list[float], xscale: str,
+                                                      default_at: float, tmp_path: Path) -> None:
+    import matplotlib.pyplot as plt
 
-    stats = {m: [(10.0 ** -(i + 3), 1e-5, 2) for i in range(len(values))] for m, _ in PANELS}
+    from gns_bench.report.figures import PANELS, ablation_figure, draw_ablation
+
+    # a different mean and std for each panel and value, spanning decades: a panel showing another metric's
+    # or value's numbers fails
+    stats = {m: [(10.0 ** -(2 * i + 3) * (j + 1), 1e-10 * (i + 1) * (j + 1), 2) for i in range(len(values))]
+             for j, (m, _) in enumerate(PANELS)}
+    fig = draw_ablation(axis, values, stats, ablation_reference(axis))
+    assert [ax.get_title() for ax in fig.axes] == [label for _, label in PANELS]
+    for ax, (metric, _) in zip(fig.axes, PANELS, strict=True):
+        assert ax.get_xlabel() == axis.split(".")[-1]
+        (errorbar,) = ax.containers
+        points, _, (bars,) = errorbar.lines
+        np.testing.assert_allclose(points.get_xdata(), x)
+        np.testing.assert_allclose(points.get_ydata(), [s[0] for s in stats[metric]])
+        np.testing.assert_allclose([(b[1, 1] - b[0, 1]) / 2 for b in bars.get_segments()],
+                                   [s[1] for s in stats[metric]], rtol=1e-6)  # error bars: the std
+        (default,) = [line for line in ax.get_lines() if line.get_label() == "paper default"]
+        assert default.get_xdata()[0] == pytest.approx(default_at)
+        assert ax.get_xscale() == xscale and ax.get_yscale() == "log"
+        if xscale == "linear":  # categories are named on the axis
+            assert [t.get_text() for t in ax.get_xticklabels()] == [str(v) for v in values]
+    plt.close(fig)
     path = ablation_figure(axis, values, stats, ablation_reference(axis), tmp_path / "a.png")
     image = matplotlib.image.imread(path)
     assert image.shape[1] > image.shape[0] > 100 and image.std() > 0
 
 
 def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
+    from gns_bench.report.cells import budget_statement
     from gns_bench.report.collect import RunRow
-    from gns_bench.report.report import budget_statement
 
     planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
 
@@ -224,8 +243,8 @@ def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
 
 
 def test_budget_statement_compares_with_constant_velocity() -> None:
+    from gns_bench.report.cells import budget_statement
     from gns_bench.report.collect import RunRow
-    from gns_bench.report.report import budget_statement
 
     planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
 

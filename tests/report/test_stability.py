@@ -19,17 +19,13 @@ from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
 STRESS = '''description = "tiny stress"
 domain = "tiny"
-paper_figure = "Knowl 7"
+paper_figure = "Sec. 5.3"
 
 [config.stress]
 tests = ["precision", "horizon", "scale"]
 scales = [2]
-
-[tiers.smoke.config.model]
-latent_size = 8
-mlp_hidden_size = 8
-message_passing_steps = 1
-
+'''
+STRESS_TIER = '''
 [tiers.smoke.config.stress]
 rollout_steps = 6
 max_trajectories = 1
@@ -37,18 +33,18 @@ max_trajectories = 1
 
 
 @pytest.fixture(scope="module")
-def stressed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def stressed(tmp_path_factory: pytest.TempPathFactory, smoke_model: str) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("stability")
     (root / "sweeps" / "stress").mkdir(parents=True)
     shutil.copy(SWEEPS_DIR / "tiers.toml", root / "sweeps" / "tiers.toml")
     path = root / "sweeps" / "stress" / "tiny.toml"
-    path.write_text(STRESS)
+    path.write_text(STRESS + smoke_model + STRESS_TIER)
     outcomes = run_sweep(load_sweep(path), "smoke", data_root=root / "data", runs_root=root / "runs",
                          progress=False, echo=lambda _: None)
     assert [o.status for o in outcomes] == ["FINISHED"], [o.error for o in outcomes]
     # The same without a horizon test: the report bounds the horizon from the test evaluation's rollouts.
     short = root / "sweeps" / "stress" / "tiny_precision.toml"
-    short.write_text(STRESS.replace('tests = ["precision", "horizon", "scale"]', 'tests = ["precision"]'))
+    short.write_text(path.read_text().replace('tests = ["precision", "horizon", "scale"]', 'tests = ["precision"]'))
     assert [o.status for o in run_sweep(load_sweep(short), "smoke", data_root=root / "data",
                                         runs_root=root / "runs", progress=False, echo=lambda _: None)] == ["FINISHED"]
     return {"sweep": path, "short": short, "root": root, "run_id": outcomes[0].run_id}

@@ -14,7 +14,7 @@ from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.config import resolve_for_dataset
 from gns_bench.sweep.runner import prepare, run_key, run_sweep
-from gns_bench.sweep.spec import SWEEP_PREFIXES, SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
 GRID = '''description = "2x2 test grid"
 domain = "tiny"
@@ -54,7 +54,10 @@ def test_every_sweep_file_loads_and_plans() -> None:
     assert ablations == {"message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
                          "position_encoding", "noise_correction", "mlp_depth", "latent_size", "self_edges",
                          "global_latent", "gravity_bias", "linear_encoder_decoder"}
-    assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate"}
+    assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate",
+                                                             "study-cpu_budget"}
+    assert {load_sweep(p).kind for p in files} == {"domain", "ablation", "stress", "study"}
+    assert load_sweep(SWEEPS_DIR / "studies" / "aggregate.toml").kind == "study"
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
     assert [r.config.model.message_passing_steps for r in mp.plan("small")] == [0, 1, 2, 3, 5, 7, 10, 15]
     assert all(r.config.train.steps == 20 and r.config.model.latent_size == 16 for r in mp.plan("smoke"))
@@ -285,7 +288,6 @@ def test_nox_has_one_session_per_sweep_file(monkeypatch: pytest.MonkeyPatch) -> 
     spec.loader.exec_module(module)
     sessions = set(nox.registry.get())
     assert {load_sweep(p).name for p in discover_sweeps()} <= sessions
-    assert module.SWEEP_PREFIXES == SWEEP_PREFIXES
     assert {"tests", "lint", "ui"} <= sessions
 
 
@@ -421,7 +423,7 @@ def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_
     # The same from the command line, for a run no sweep plans any more: into the run that trained the
     # checkpoint, with that run's own evaluation settings (1 trajectory at the smoke tier, where the command's
     # plain `evaluate` would take every test trajectory)
-    from gns_bench.data.generate import dataset_path
+    from gns_bench.datasets import dataset_path
 
     dataset = dataset_path(planned.domain, planned.dataset_tier, planned.dataset_seed, tmp_path / "data")
     assert main(["evaluate", str(out_dir), str(dataset), "--into", source.info.run_id, "--reason", "by hand"]) == 0
@@ -448,3 +450,68 @@ def test_the_decay_study_shares_its_compressed_and_paper_points_with_the_goop_do
                                                                          learning_rate_decay_steps=5_000_000)))
     assert dataset_key(study[5_000_000], "hash") == dataset_key(paper_decay, "hash")
     assert dataset_key(study[10_000], "hash") != dataset_key(goop, "hash")
+
+
+STUDY = '''description = "two candidates"
+domain = "tiny"
+
+[tiers.smoke]
+eval_dataset_tier = "smoke"
+
+[tiers.smoke.config.model]
+latent_size = 8
+mlp_hidden_size = 8
+
+[tiers.smoke.config.train]
+eval_every = 10
+eval_trajectories = 1
+eval_rollout_steps = 5
+
+[candidates.plain]
+config.model = { message_passing_steps = 1 }
+
+[candidates.more-data]
+dataset_tier = "small"
+config.model = { message_passing_steps = 2 }
+'''
+
+
+def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(sweeps: Path, tmp_path: Path) -> None:
+    """A sweep of named candidates: each its own config (and perhaps its own training data), every one
+    evaluated on the same test split (the tier's eval_dataset_tier), and keyed by both datasets."""
+    (sweeps / "studies").mkdir()
+    path = sweeps / "studies" / "two.toml"
+    path.write_text(STUDY)
+    sweep = load_sweep(path)
+    assert sweep.kind == "study" and sweep.axes == ["candidate"]
+    runs = {r.name: r for r in sweep.plan("smoke")}
+    assert sorted(runs) == ["candidate=more-data-seed0", "candidate=plain-seed0"]
+    more, plain = runs["candidate=more-data-seed0"], runs["candidate=plain-seed0"]
+    assert (more.dataset_tier, more.evaluated_on) == ("small", "smoke") and more.eval_dataset_tier == "smoke"
+    assert (plain.dataset_tier, plain.evaluated_on, plain.eval_dataset_tier) == ("smoke", "smoke", None)
+    assert more.config.model.message_passing_steps == 2 and more.config.model.latent_size == 8
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"], [o.error for o in outcomes]
+    previous_uri = tracking.tracking_uri()
+    logged = {r.info.run_name: r for r in runs_of(sweep.experiment)}
+    trained_on = logged["candidate=more-data-seed0"].data.tags
+    assert trained_on["dataset_tier"] == "small" and trained_on["eval_dataset_tier"] == "smoke"
+    assert trained_on["eval_dataset_hash"] == logged["candidate=plain-seed0"].data.tags["dataset_hash"]
+    from gns_bench.report import write_report
+
+    text = write_report(path, "smoke", tmp_path / "reports").read_text()
+    assert "| `plain` | 1 | 20 |" in text and "| `more-data` | 1 | 20 |" in text  # one seed, 20 steps each
+    assert "**Winner.** Lowest rollout MSE: `" in text and "![error against training time](error_vs_time.png)" in text
+    assert (tmp_path / "reports" / "study-two" / "smoke" / "error_vs_time.png").stat().st_size > 5000
+    # the committed run summary rebuilds the same tables and curves when the MLflow store is gone
+    tracking.use_tracking_uri(f"sqlite:///{tmp_path / 'empty.db'}")
+    try:
+        again = write_report(path, "smoke", tmp_path / "reports").read_text()
+    finally:
+        tracking.use_tracking_uri(previous_uri)
+    table = [line for line in text.splitlines() if line.startswith("| `")]
+    assert table and table == [line for line in again.splitlines() if line.startswith("| `")]
+    assert "![error against training time](error_vs_time.png)" in again
+    with pytest.raises(SweepError, match="not both"):
+        path.write_text(STUDY + '\n[grid]\n"train.noise_std" = [0.0]\n')
+        load_sweep(path)

@@ -81,3 +81,56 @@ def test_compiled_training_tracks_eager_and_checkpoints_load_eagerly(tiny_datase
     simulator, _, _ = load_simulator(runs[True].checkpoint)  # parameter names unchanged by compiling
     reference, _, _ = load_simulator(runs[False].checkpoint)
     assert simulator.state_dict().keys() == reference.state_dict().keys()
+
+
+def test_training_noise_leaves_kinematic_particles_alone(tiny_dataset: Path) -> None:
+    """The noise the loop trains with (`step_inputs`) is zero on kinematic rows, which follow the data, and
+    random-walk noise on the others; its moving count is the whole batch's."""
+    from gns_bench.data.windows import WindowSampler
+    from gns_bench.train.loop import step_inputs
+
+    sampler = WindowSampler(load_split(tiny_dataset, "train"), 6, seed=0)
+    batch, noise, num_moving = step_inputs(sampler, step=3, batch_size=2, noise_std=3e-4)
+    kinematic = (batch.particle_type == 3).numpy()
+    assert kinematic.any() and num_moving == int((~kinematic).sum())
+    assert not noise[kinematic].any()
+    assert (noise[~kinematic][:, 1:].abs() > 0).all()  # every moving row noised after the first position
+
+
+def test_time_budget_and_curve_evaluation(tiny_dataset: Path, tmp_path: Path) -> None:
+    """`train.max_wall_seconds` stops training by time; `train.eval_every` evaluates along the way on the
+    validation subset, and that time is not training time."""
+    from gns_bench.train.loop import train
+
+    config = load_config(None, QUICK + ["train.steps=1000000", "train.max_wall_seconds=3", "train.eval_every=5"])
+    points: list[tuple[int, float]] = []
+
+    def on_eval(simulator, step: int, seconds: float) -> None:
+        assert not simulator.training
+        points.append((step, seconds))
+        import time
+        time.sleep(0.5)  # evaluation time must not count against the budget
+
+    result = train(config, tiny_dataset, tmp_path / "run", progress=False, on_eval=on_eval)
+    assert 0 < result.final_step < 1000000
+    assert 3.0 <= result.wall_time_s < 3.0 + 5.0  # stops at the first step past the budget
+    assert result.eval_seconds >= 0.5 * len(points)
+    steps = [s for s, _ in points]
+    assert steps[0] == 0 and steps[1:-1] == list(range(5, 5 * (len(steps) - 1), 5))[: len(steps) - 2]
+    assert steps[-1] == result.final_step
+    seconds = [t for _, t in points]
+    assert seconds == sorted(seconds) and seconds[-1] <= result.wall_time_s + 1e-6
+
+
+def test_step_clock_counts_a_stall_as_a_few_typical_steps() -> None:
+    """A run stopped with SIGSTOP mid-step (or stalled by another job) must not spend its time budget."""
+    from gns_bench.train.loop import StepClock
+
+    clock = StepClock(earlier=100.0)
+    for _ in range(20):
+        clock.add(0.5)
+    assert clock.total == pytest.approx(110.0)
+    assert clock.add(600.0) == pytest.approx(1.5)  # a ten-minute pause counts as 3 x the median step
+    assert clock.total == pytest.approx(111.5)
+    first = StepClock()
+    assert first.add(60.0) == 60.0  # warm-up steps (compilation) count in full

@@ -1,0 +1,91 @@
+"""A campaign: sweeps run in priority order by one resumable command, then every report written.
+
+`sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they should fill in.
+`run_campaign` runs what each lacks at a tier (finished runs skipped, interrupted ones resumed from their
+checkpoints, runs another sweep trained recorded as shared), writes that sweep's report as soon as it is done
+so results land while the rest runs, and ends by writing every report. A sweep that fails is reported and the
+campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from gns_bench.config import read_toml
+from gns_bench.report import write_all_reports, write_report
+from gns_bench.sweep.runner import RunOutcome, format_plan, prepare, run_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, SweepSpec, load_sweep
+
+CAMPAIGNS_DIR = SWEEPS_DIR / "campaigns"
+_KEYS = {"description", "sweeps"}
+
+
+@dataclass(frozen=True)
+class Campaign:
+    name: str
+    path: Path
+    description: str
+    sweeps: tuple[Path, ...]  # in priority order
+
+
+def load_campaign(path: str | Path, sweeps_dir: Path = SWEEPS_DIR) -> Campaign:
+    """A campaign file, every sweep it names checked to exist and load."""
+    path = Path(path)
+    data = read_toml(path, SweepError)
+    unknown = set(data) - _KEYS
+    if unknown:
+        raise SweepError(f"{path}: unknown key '{sorted(unknown)[0]}'; known keys: {sorted(_KEYS)}")
+    names = data.get("sweeps")
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise SweepError(f"{path}: 'sweeps': expected a non-empty list of sweep files relative to {sweeps_dir}")
+    if len(set(names)) != len(names):
+        raise SweepError(f"{path}: 'sweeps': {sorted({n for n in names if names.count(n) > 1})} listed twice")
+    sweeps = tuple(sweeps_dir / name for name in names)
+    for name, sweep in zip(names, sweeps, strict=True):
+        if not sweep.is_file():
+            raise SweepError(f"{path}: 'sweeps': no sweep file {name} in {sweeps_dir}")
+        load_sweep(sweep, sweeps_dir)  # a broken sweep fails here, before anything runs
+    return Campaign(path.stem, path, str(data.get("description", "")), sweeps)
+
+
+@dataclass
+class SweepResult:
+    sweep: str
+    outcomes: list[RunOutcome]
+    error: str = ""  # the sweep could not run at all (e.g. its dataset failed to generate)
+
+
+def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print) -> None:
+    """Print each sweep's runs and their status, generating nothing."""
+    for path in campaign.sweeps:
+        sweep = load_sweep(path)
+        runs, status, _ = prepare(sweep, tier, data_root, generate=False)
+        echo(format_plan(sweep, tier, runs, status))
+
+
+def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path,
+                 reports_root: Path = Path("reports"), launcher: str = "local", cluster: str | None = None,
+                 progress: bool = True, echo: Callable[[str], None] = print,
+                 sweeps_dir: Path = SWEEPS_DIR) -> list[SweepResult]:
+    """Run every sweep of the campaign at `tier` in order, writing each one's report when it is done, then
+    every report (`write_all_reports`: the domain table and stability pages too)."""
+    results = []
+    for index, path in enumerate(campaign.sweeps, 1):
+        sweep: SweepSpec = load_sweep(path, sweeps_dir)
+        echo(f"== campaign {campaign.name} ({tier}), sweep {index}/{len(campaign.sweeps)}: {sweep.name}")
+        try:
+            outcomes = run_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, launcher=launcher,
+                                 cluster=cluster, progress=progress, echo=echo)
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # noqa: BLE001 - one sweep's failure (a dataset that would not generate) is reported
+            echo(f"  sweep {sweep.name} failed: {type(exc).__name__}: {exc}")
+            results.append(SweepResult(sweep.name, [], f"{type(exc).__name__}: {exc}"))
+            continue
+        results.append(SweepResult(sweep.name, outcomes))
+        echo(f"  report: {write_report(path, tier, reports_root)}")
+    for written in write_all_reports(tier, reports_root, sweeps_dir):
+        echo(f"  report: {written}")
+    return results

@@ -1,0 +1,177 @@
+"""Table cells and the budget statement: how a report words a set of runs (`RunRow`s).
+
+Shared by the sweep reports (`report.py`) and the stability report (`stability.py`); numbers print with
+three significant digits, gaps as "—", and a row with no finished run as MISSING.
+"""
+
+from __future__ import annotations
+
+import math
+
+from gns_bench.report.collect import RunRow, mean_std
+from gns_bench.report.reference import paper_training_steps
+
+MISSING = "**missing**"
+
+
+def fmt(value: float) -> str:
+    return "—" if value is None or not math.isfinite(value) else f"{value:.3g}"
+
+
+def ratio(ours: float, paper: float | None) -> str:
+    if paper is None or not math.isfinite(ours) or paper == 0:
+        return "—"
+    return f"{ours / paper:.3g}x"
+
+
+def status_cell(rows: list[RunRow]) -> str:
+    if not rows or not any(r.ok for r in rows):
+        states = sorted({r.status for r in rows}) or ["missing"]
+        return "**" + ", ".join(states) + "**"
+    bad = [r for r in rows if not r.ok]
+    return "ok" if not bad else f"ok ({len(bad)} of {len(rows)} {', '.join(sorted({r.status for r in bad}))})"
+
+
+def run_id_cell(row: RunRow) -> str:
+    """The run id, with its status when it did not finish, and the run it copies when another sweep trained it."""
+    if not row.run_id:
+        return "—"
+    source = row.tag("shared_from")
+    return (f"`{row.run_id}`" + ("" if row.ok else f" ({row.status})")
+            + (f", shared from {row.tag('shared_from_run', '?')} (`{source}`)" if source else ""))
+
+
+def run_ids_cell(rows: list[RunRow]) -> str:
+    return "<br>".join(run_id_cell(r) for r in rows if r.run_id) or "—"
+
+
+def comparable_cv(row: RunRow) -> float:
+    """The constant-velocity rollout MSE over the steps this run's GNS rollouts covered: the whole horizon, or
+    the steps before a monitor's stop; NaN for a stopped run evaluated before that was logged."""
+    same_steps = row.metric("baseline_cv_same_steps_mse")
+    if math.isfinite(same_steps):
+        return same_steps
+    return math.nan if row.metric("rollout_stopped") > 0 else row.metric("baseline_cv_rollout_mse")
+
+
+def _paired_with_cv(rows: list[RunRow]) -> list[RunRow]:
+    """The runs whose constant-velocity MSE over the GNS rollouts' own steps is known."""
+    return [r for r in rows if comparable_cv(r) > 0]  # NaN (not finished, not logged) fails the test
+
+
+def cv_ratio(rows: list[RunRow]) -> str:
+    """GNS / constant-velocity rollout MSE (means over runs), both over the same steps; "—" where unknown."""
+    paired = _paired_with_cv(rows)
+    if not paired:
+        return "—"
+    return ratio(mean_std([r.metric("rollout_mse") for r in paired])[0],
+                 mean_std([comparable_cv(r) for r in paired])[0])
+
+
+def against_cv(rows: list[RunRow]) -> str:
+    """`cv_ratio` in words, for the domain table's baseline cell."""
+    paired = _paired_with_cv(rows)
+    if not paired:
+        return "GNS rollouts stopped" if any(r.metric("rollout_stopped") > 0 for r in rows) else "—"
+    return cv_ratio(paired) + (" over the steps before the stops"
+                               if any(r.metric("rollout_stopped") > 0 for r in paired) else "")
+
+
+def steps_covered(rows: list[RunRow]) -> str:
+    """Mean number of steps the finished runs' rollouts covered, and the share a monitor stopped."""
+    steps, _, n = mean_std([r.metric("rollout_steps") for r in rows])
+    if not n:
+        return MISSING if not any(r.ok for r in rows) else "—"
+    stopped = mean_std([r.metric("rollout_stopped") for r in rows])[0]
+    return f"{steps:.0f}" + (f" ({stopped:.0%} stopped)" if stopped > 0 else "")
+
+
+def budget(rows: list[RunRow]) -> str:
+    """Training steps, wall time, hardware and dataset tier of the finished runs in a row."""
+    done = [r for r in rows if r.ok]
+    if not done:
+        return "—"
+    steps = sorted({int(float(r.param("train.steps", "0"))) for r in done})
+    wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
+    hardware = sorted({r.tag("hardware", "?") for r in done})
+    tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier", "?") for r in done})
+    horizon = mean_std([r.metric("rollout_steps") for r in done])[0]
+    models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
+                     for r in done})
+    # fp32 (the paper's) unless a run trained in reduced precision; torch.compile changes speed, not the function
+    precisions = sorted({r.param("train.precision", "fp32") + (" compiled" if r.param("train.compile") == "True"
+                                                                else "") for r in done})
+    if precisions != ["fp32"]:
+        models = [f"{m}, {'/'.join(precisions)}" for m in models]
+    # Where the schedule stood at the last step: short runs on the paper's 5M-step decay end at ~1e-4, and
+    # their last weights are a noisy snapshot (sweeps/tiers.toml, small tier)
+    final_rates = sorted({fmt(lr) for lr in (r.metric("learning_rate") for r in done) if math.isfinite(lr)})
+    if final_rates:
+        models = [f"{m}, final learning rate {'/'.join(final_rates)}" for m in models]
+    return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
+            f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
+
+
+# The paper's numbers come from the release's metrics (train.py), so ours are logged the same way.
+DEFINITIONS = ("One-step and rollout MSE are the release's (learning_to_simulate/train.py): means over every "
+               "particle, kinematic ones included, and for the rollout over sequence_length - 6 steps; MLflow "
+               "also holds `one_step_mse_moving` and `rollout_mse_moving` without kinematic particles. ")
+
+
+def budget_statement(rows: list[RunRow]) -> str:
+    """The plain-words explanation of gaps to the paper: how far our training budget is from its 20M steps."""
+    done = [r for r in rows if r.ok]
+    paper = paper_training_steps()
+    if not done:
+        return "No finished run: nothing to compare with the paper yet."
+    steps = max(int(float(r.param("train.steps", "0"))) for r in done)
+    fraction = steps / paper
+    text = (f"Budget: at most {steps:,} training steps per run, {100 * fraction:.2g}% of the paper's {paper:,} "
+            f"(batch 2). ")
+    if fraction < 0.01:
+        text += ("That is far below the paper's budget, so gaps to its figures are expected; a number at or "
+                 "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and does "
+                 "not show that its accuracy is reproduced. ")
+    elif fraction < 1:
+        text += "Remaining gaps to the paper are expected from the shorter training and smaller datasets. "
+    capped = sorted({r.param("eval.rollout_steps") for r in done} - {"", "None"}, key=float)
+    if capped:
+        text += (f"Rollouts are cut at `eval.rollout_steps` = {'/'.join(capped)} steps, where the paper rolls out "
+                 "whole trajectories (K = 150 to 2000 steps): errors grow along a rollout, so these rollout MSEs "
+                 "are not comparable with the paper's (they typically sit below them). ")
+    stopped = [r for r in done if r.metric("rollout_stopped") > 0]
+    if stopped:
+        text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
+                 f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
+                 "their rollout MSE covers only the steps before the stop. ")
+    flagged = [r for r in done if r.metric("rollout_flagged") > 0]
+    if flagged:
+        text += (f"In {len(flagged)} of {len(done)} runs a monitor outside `eval.stop_on` flagged some rollouts "
+                 "(by default: a particle out of the bounds) and they ran on, as the paper's do: the rollout MSE "
+                 "counts that error (MLflow tag `<split>/rollouts_flagged` says where: "
+                 f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
+    against_cv = [r.metric("rollout_mse") / comparable_cv(r) for r in done if comparable_cv(r) > 0]
+    against_cv = [x for x in against_cv if math.isfinite(x)]
+    left_out = sum(r.metric("rollout_stopped") > 0 and not math.isfinite(comparable_cv(r)) for r in done)
+    if against_cv:
+        low, high = min(against_cv), max(against_cv)
+        span = f"{low:.2g}x" + (f" to {high:.2g}x" if high > low else "")
+        text += (f"On the same trajectories and steps, the GNS's rollout MSE is {span} that of a "
+                 "constant-velocity extrapolation (below 1x: the model beats it"
+                 + (f"; left out: {left_out} run(s) with stopped rollouts, evaluated before the baseline over "
+                    "the same steps was logged" if left_out else "") + "). ")
+    text += DEFINITIONS
+    legacy = [r for r in done if not math.isfinite(r.metric("rollout_mse_moving"))]
+    if legacy:
+        text += (f"{len(legacy)} of {len(done)} runs were evaluated before issue #17 "
+                 f"({', '.join(f'`{r.run_id}`' for r in legacy)}): their MSEs leave kinematic particles out and "
+                 "their rollout MSE covers one step more (it reads higher by up to N_all / N_moving on domains with "
+                 "obstacles), and their model summed the updated edges (`model.aggregate = \"updated_edges\"`). ")
+    tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
+    if any(t != "paper" for t in tiers):
+        text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
+    if any(r.tag("dataset_tier") for r in done):  # set by gns-bench's generators; imported datasets have none
+        text += ("The ground truth comes from gns-bench's own solvers (`datasets/<domain>.toml`), in the paper's "
+                 "format and units but not its trajectories: the paper's numbers are a reference on like scenes, "
+                 "not on the same test set. ")
+    return text

@@ -1,0 +1,88 @@
+"""Whether an ablation reproduces the paper's finding on its axis, computed from the runs.
+
+The error compared is the rollout MSE divided by constant velocity's over the same steps, on a log scale:
+like for like even when health monitors stopped rollouts at different steps, and on whole rollouts simply
+the rollout MSE rescaled by one number per test set. Differences are judged against the seed spread at the
+paper's default value (the campaign trains it with several seeds): the band is twice the standard deviation
+of the log error over those seeds. A difference beyond the band counts; one inside it does not.
+
+- `better = [[a, b], ...]` (the paper found a better than b): *reproduced* when every pair that was run has a
+  below b beyond the band, *not reproduced* when some pair has a above b beyond it, else *inconclusive (within
+  the seed spread)*.
+- `no_effect = true` (App. C.1's minor axes): *reproduced* when every value stays within the band of the
+  default, else *not reproduced*.
+Without at least two finished seeds at the default there is no band: *inconclusive (no seed spread yet)*.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+REPRODUCED = "the paper's direction reproduced"
+NOT_REPRODUCED = "not reproduced"
+WITHIN_SPREAD = "inconclusive (within the seed spread)"
+NO_SPREAD = "inconclusive (no seed spread yet)"
+NOT_RUN = "inconclusive (the values the paper compares were not run)"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    verdict: str
+    detail: str  # the comparisons behind it, in words
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, bool) or isinstance(b, bool) or isinstance(a, str) or isinstance(b, str):
+        return a == b
+    return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-15)
+
+
+def _find(errors: Mapping[Any, Sequence[float]], value: Any) -> list[float] | None:
+    for key, values in errors.items():
+        if _same(key, value):
+            finite = [v for v in values if math.isfinite(v) and v > 0]
+            return finite or None
+    return None
+
+
+def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -> Verdict:
+    """`errors[value]`: the finished runs' errors (GNS / constant velocity) at each axis value; `reference`:
+    the axis' entry of paper_reference.toml (`default`, and `better` or `no_effect`)."""
+    default = _find(errors, reference.get("default"))
+    if default is None or len(default) < 2:
+        return Verdict(NO_SPREAD, "fewer than two finished seeds at the paper's default")
+    band = 2.0 * float(np.std(np.log10(default)))
+
+    def mean_log(values: list[float]) -> float:
+        return float(np.mean(np.log10(values)))
+
+    if reference.get("no_effect"):
+        base = mean_log(default)
+        others = [(key, _find(errors, key)) for key in errors if not _same(key, reference["default"])]
+        others = [(key, values) for key, values in others if values]
+        if not others:
+            return Verdict(NOT_RUN, "no value besides the default finished")
+        gaps = [(key, mean_log(values) - base) for key, values in others]
+        detail = "; ".join(f"{key}: {10 ** gap:.2g}x the default's error" for key, gap in gaps)
+        detail += f" (band: x{10 ** band:.2g} either way)"
+        return Verdict(REPRODUCED if all(abs(gap) <= band for _, gap in gaps) else NOT_REPRODUCED, detail)
+    pairs = [(a, b, _find(errors, a), _find(errors, b)) for a, b in reference.get("better", [])]
+    pairs = [(a, b, ea, eb) for a, b, ea, eb in pairs if ea and eb]
+    if not pairs:
+        return Verdict(NOT_RUN, "none of the paper's comparisons has both values finished")
+    outcomes, words = [], []
+    for a, b, ea, eb in pairs:
+        gap = mean_log(eb) - mean_log(ea)  # > 0: a has the lower error, as the paper found
+        outcomes.append("yes" if gap > band else "no" if gap < -band else "tie")
+        words.append(f"{a} vs {b}: {10 ** -gap:.2g}x")
+    detail = "; ".join(words) + f" (error of the first over the second; band: x{10 ** band:.2g} either way)"
+    if "no" in outcomes:
+        return Verdict(NOT_REPRODUCED, detail)
+    if all(o == "yes" for o in outcomes):
+        return Verdict(REPRODUCED, detail)
+    return Verdict(WITHIN_SPREAD, detail)

@@ -1,0 +1,40 @@
+"""Verdicts on the paper's ablation findings, computed from numbers against the default's seed spread."""
+
+from __future__ import annotations
+
+from gns_bench.report.verdict import NO_SPREAD, NOT_REPRODUCED, NOT_RUN, REPRODUCED, WITHIN_SPREAD, judge
+
+STEPS = {"default": 10, "better": [[10, 1], [10, 5], [5, 1]]}
+MINOR = {"default": 2, "no_effect": True}
+DEFAULT = [1.0, 1.1, 0.9]  # std of log10 ~0.037: band x1.19 either way
+
+
+def test_a_clear_ordering_reproduces_the_paper() -> None:
+    verdict = judge({10: DEFAULT, 5: [2.0], 1: [5.0]}, STEPS)
+    assert verdict.verdict == REPRODUCED
+    assert "10 vs 1: 0.2x" in verdict.detail  # the error at 10 is a fifth of that at 1
+
+
+def test_a_reversed_pair_is_not_reproduced_and_a_small_gap_is_inconclusive() -> None:
+    assert judge({10: DEFAULT, 1: [0.5]}, STEPS).verdict == NOT_REPRODUCED
+    assert judge({10: DEFAULT, 1: [1.1]}, STEPS).verdict == WITHIN_SPREAD
+    assert judge({10: DEFAULT, 5: [1.05], 1: [3.0]}, STEPS).verdict == WITHIN_SPREAD  # two clear, 10 vs 5 within
+
+
+def test_without_seeds_or_pairs_there_is_no_verdict() -> None:
+    assert judge({10: [1.0], 1: [5.0]}, STEPS).verdict == NO_SPREAD
+    assert judge({10: DEFAULT, 7: [5.0]}, STEPS).verdict == NOT_RUN
+    assert judge({10: [1.0, float("nan")], 1: [5.0]}, STEPS).verdict == NO_SPREAD  # NaN is not a seed
+
+
+def test_no_effect_axes_are_reproduced_within_the_band() -> None:
+    assert judge({2: DEFAULT, 1: [1.05], 3: [0.95]}, MINOR).verdict == REPRODUCED
+    verdict = judge({2: DEFAULT, 1: [2.0]}, MINOR)
+    assert verdict.verdict == NOT_REPRODUCED and "1: 2x the default's error" in verdict.detail
+
+
+def test_category_values_match_exactly() -> None:
+    sharing = {"default": False, "better": [[False, True]]}
+    assert judge({False: DEFAULT, True: [3.0]}, sharing).verdict == REPRODUCED
+    encoding = {"default": "relative", "better": [["relative", "absolute"]]}
+    assert judge({"relative": DEFAULT, "absolute": [0.2]}, encoding).verdict == NOT_REPRODUCED
