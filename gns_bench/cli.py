@@ -36,17 +36,19 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
 def cmd_generate(args: argparse.Namespace) -> None:
     import shutil
 
-    from gns_bench.datasets import ensure_dataset
+    from gns_bench.datasets import check_domain, dataset_path, ensure_dataset
 
     if args.domain == "list":
-        from gns_bench.physics.spec import list_domains, list_variants
+        from gns_bench.datasets import list_domains, list_variants
 
-        print("domains:  " + " ".join(["tiny", *list_domains()]))
+        print("domains:  " + " ".join(list_domains()))
         print("variants: " + " ".join(list_variants()))
         return
-    if args.overwrite and args.out is not None and args.out.exists():
-        shutil.rmtree(args.out)
-    path = ensure_dataset(args.domain, args.tier, args.seed, out=args.out)
+    out = args.out or dataset_path(args.domain, args.tier, args.seed)
+    if args.overwrite and out.exists():
+        check_domain(args.domain)  # refuse an unknown domain before deleting anything
+        shutil.rmtree(out)
+    path = ensure_dataset(args.domain, args.tier, args.seed, out=out)
     print(path)
 
 

@@ -153,3 +153,18 @@ def test_ui_stops_with_its_web_server_on_sigterm(tmp_path: Path) -> None:
     finally:
         if ui.poll() is None:
             ui.kill()
+
+
+def test_generate_overwrite_replaces_the_default_dataset_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["generate", "tiny", "--tier", "smoke"]) == 0
+    made = tmp_path / "data" / "tiny-smoke-s0"
+    (made / "stray.txt").write_text("left by hand")
+    assert main(["generate", "tiny", "--tier", "smoke"]) == 0 and (made / "stray.txt").exists()  # reused
+    assert main(["generate", "tiny", "--tier", "smoke", "--overwrite"]) == 0  # no --out: the default folder
+    assert not (made / "stray.txt").exists() and (made / "metadata.json").exists()
+    capsys.readouterr()
+    assert main(["generate", "notadomain", "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown domain 'notadomain'" in err and "tiny" in err and "waterdrop" in err
