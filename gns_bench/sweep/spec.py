@@ -24,8 +24,9 @@ from gns_bench.sweep.naming import is_sweep_file, sweep_kind, sweep_name
 
 SWEEPS_DIR = Path(__file__).resolve().parents[2] / "sweeps"
 TIERS_FILE = "tiers.toml"
-_SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "candidates", "tiers", "paper_figure"}
-_TIER_KEYS = {"dataset_tier", "eval_dataset_tier", "seeds", "config", "grid", "candidates"}
+_SWEEP_KEYS = {"description", "domain", "dataset_seed", "config", "grid", "candidates", "tiers", "paper_figure",
+               "default"}
+_TIER_KEYS = {"dataset_tier", "eval_dataset_tier", "seeds", "default_seeds", "config", "grid", "candidates"}
 _CANDIDATE_KEYS = {"config", "dataset_tier", "dataset_domain", "seeds"}
 CANDIDATE_AXIS = "candidate"  # the one axis of a sweep of named candidates
 
@@ -42,6 +43,9 @@ class TierSpec:
     grid: dict[str, tuple[Any, ...]] | None = None  # restricts the sweep's axis values at this tier
     eval_dataset_tier: str | None = None  # evaluate on this tier's dataset (None: the one trained on)
     candidates: tuple[str, ...] | None = None  # restricts the sweep's candidates at this tier
+    # Seeds of the sweep's `default` point (an ablation's paper-default value), where the other points take
+    # `seeds`: the seed spread there is the band ablation verdicts are judged against.
+    default_seeds: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -96,6 +100,7 @@ class SweepSpec:
     tiers: dict[str, TierSpec]
     paper_figure: str = ""
     candidates: dict[str, Candidate] = field(default_factory=dict)
+    default: dict[str, Any] = field(default_factory=dict)  # the grid point at the paper's default values
 
     @property
     def experiment(self) -> str:
@@ -115,6 +120,8 @@ class SweepSpec:
             seeds = spec.seeds
             if self.candidates and self.candidates[axes[CANDIDATE_AXIS]].seeds:
                 seeds = self.candidates[axes[CANDIDATE_AXIS]].seeds
+            if spec.default_seeds and self.default and axes == self.default:
+                seeds = spec.default_seeds
             for seed in seeds:
                 data = _merge(self.config, spec.config, changes)
                 data.setdefault("train", {})["seed"] = seed
@@ -212,6 +219,10 @@ def _tier_table(value: Any, path: Path, where: str, base: TierSpec | None) -> Ti
     if eval_dataset_tier is not None and eval_dataset_tier not in TIERS:
         raise SweepError(f"{path}: '{where}.eval_dataset_tier': expected one of {list(TIERS)}, "
                          f"got {eval_dataset_tier!r}")
+    default_seeds = value.get("default_seeds", list(base.default_seeds) if base and base.default_seeds else None)
+    if default_seeds is not None and (not isinstance(default_seeds, list) or not default_seeds
+                                      or not all(isinstance(x, int) and x >= 0 for x in default_seeds)):
+        raise SweepError(f"{path}: '{where}.default_seeds': expected a non-empty list of non-negative integers")
     candidates = value.get("candidates")
     if candidates is not None and (not isinstance(candidates, list) or not candidates
                                    or not all(isinstance(c, str) for c in candidates)):
@@ -219,7 +230,7 @@ def _tier_table(value: Any, path: Path, where: str, base: TierSpec | None) -> Ti
     if base is not None:
         config = _merge(base.config, config)
     return TierSpec(dataset_tier, tuple(seeds), config, grid, eval_dataset_tier,
-                    tuple(candidates) if candidates else None)
+                    tuple(candidates) if candidates else None, tuple(default_seeds) if default_seeds else None)
 
 
 def _candidates_table(value: Any, path: Path) -> dict[str, Candidate]:
@@ -280,6 +291,13 @@ def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
     candidates = _candidates_table(data.get("candidates", {}), path)
     if grid and candidates:
         raise SweepError(f"{path}: a sweep has a [grid] of axes or [candidates], not both")
+    default = data.get("default", {})
+    if not isinstance(default, dict) or set(default) != (set(grid) if default else set()):
+        raise SweepError(f"{path}: 'default': expected one value per axis of [grid] ({sorted(grid)}), the point "
+                         "at the paper's defaults")
+    for axis, value in default.items():
+        if not any(repr(value) == repr(v) for v in grid[axis]):
+            raise SweepError(f"{path}: 'default.{axis}': {value!r} is not among the axis values {list(grid[axis])}")
     tiers_data = data.get("tiers", {})
     if not isinstance(tiers_data, dict):
         raise SweepError(f"{path}: 'tiers' must be a table")
@@ -296,7 +314,7 @@ def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
                              ", which the sweep's [candidates] do not have")
     sweep = SweepSpec(sweep_name(path, sweeps_dir), sweep_kind(path, sweeps_dir), path,
                       str(data.get("description", "")), domain, dataset_seed, config, grid, tiers,
-                      str(data.get("paper_figure", "")), candidates)
+                      str(data.get("paper_figure", "")), candidates, default)
     for tier in TIERS:
         sweep.plan(tier)  # resolves and validates every run's config now
     return sweep

@@ -515,3 +515,19 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     with pytest.raises(SweepError, match="not both"):
         path.write_text(STUDY + '\n[grid]\n"train.noise_std" = [0.0]\n')
         load_sweep(path)
+
+
+def test_the_default_point_takes_the_tiers_default_seeds(sweeps: Path) -> None:
+    """An ablation's point at the paper's default gets `default_seeds` (its seed spread is the band the
+    verdicts are judged against); the other points keep the tier's seeds. A default off the grid is refused."""
+    path = sweeps / "tests" / "defaults.toml"
+    default = 'default = { "model.message_passing_steps" = 2, "train.noise_std" = 3e-4 }\n'
+    path.write_text(default + GRID + "\n[tiers.smoke]\ndefault_seeds = [0, 1, 2]\n")
+    plan = load_sweep(path).plan("smoke")
+    seeds: dict[tuple, list[int]] = {}
+    for run in plan:
+        seeds.setdefault(tuple(run.axes.values()), []).append(run.seed)
+    assert seeds[(2, 3e-4)] == [0, 1, 2] and seeds[(1, 3e-4)] == [0] and seeds[(2, 0.0)] == [0]
+    path.write_text(default.replace("= 2", "= 7") + GRID)
+    with pytest.raises(SweepError, match="not among the axis values"):
+        load_sweep(path)
