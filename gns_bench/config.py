@@ -86,10 +86,12 @@ class TrainConfig:
     log_every: int = 100
     device: str = "auto"  # "auto" picks CUDA when present
     num_threads: int | None = None  # torch CPU threads; None keeps torch's default
-    precision: Literal["fp32", "bf16"] = "fp32"  # bf16: autocast the network (features and loss stay fp32)
+    # bf16: autocast the network (features and loss stay fp32). "auto": whichever trains fastest on this
+    # machine, measured by a short probe (gns_bench/train/autotune.py); the run records what it used.
+    precision: Literal["fp32", "bf16", "auto"] = "fp32"
     # torch.compile the network (dynamic shapes: one compilation serves every graph size, ~1 min at start).
-    # On this CPU it pays in bf16 and costs in fp32; `gns-bench bench` measures both.
-    compile: bool = False
+    # It paid in bf16 on an Intel Xeon with AMX and cost on an AMD EPYC; "auto" measures it on the machine.
+    compile: bool | Literal["auto"] = False
     # Stop at the first step after this much training time (seconds, over resumes; periodic evaluation not
     # counted). For budget studies, whose runs get equal time; tiers define runs by steps, so results do not
     # depend on the machine's speed.

@@ -140,6 +140,10 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         run.log_metrics({"train/steps_per_second": result.steps_per_second,
                          "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s,
                          "train/curve_eval_seconds": result.eval_seconds})
+        if result.speed is not None:  # what "auto" chose, or the config's own settings
+            run.set_tags({"train/precision_used": result.speed.precision,
+                          "train/compile_used": str(result.speed.compile),
+                          "train/speed_settings": result.speed.describe()})
         run.log_artifact(result.checkpoint, "checkpoint")
         metrics: dict[str, float] = {}
         if evaluate_after:

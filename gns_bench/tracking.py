@@ -61,20 +61,14 @@ def git_sha() -> str:
 
 
 def hardware_description(device: str) -> str:
-    """What a number was measured on, for reports: the GPU's name, or the CPU model and core count."""
+    """What a number was measured on, for reports: the GPU's name, or the CPU model and thread count."""
     import torch
+
+    from gns_bench.devices import cpu_model
 
     if device.startswith("cuda") and torch.cuda.is_available():
         return torch.cuda.get_device_name(torch.device(device))
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {torch.get_num_threads()} threads"
+    return f"{cpu_model()}, {torch.get_num_threads()} threads"
 
 
 def environment_tags(device: str) -> dict[str, str]:

@@ -86,6 +86,15 @@ def steps_covered(rows: list[RunRow]) -> str:
     return f"{steps:.0f}" + (f" ({stopped:.0%} stopped)" if stopped > 0 else "")
 
 
+def used_precision(row: RunRow) -> str:
+    """What the run trained in: the settings `train.precision`/`train.compile = "auto"` chose (tags), else the
+    config's."""
+    precision = row.tag("train/precision_used") or row.param("train.precision", "fp32")
+    compiled = (row.tag("train/compile_used") or row.param("train.compile")) == "True"
+    auto = "auto" in (row.param("train.precision"), row.param("train.compile"))
+    return precision + (" compiled" if compiled else "") + (" (auto)" if auto else "")
+
+
 def budget(rows: list[RunRow]) -> str:
     """Training steps, wall time, hardware and dataset tier of the finished runs in a row."""
     done = [r for r in rows if r.ok]
@@ -99,8 +108,7 @@ def budget(rows: list[RunRow]) -> str:
     models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
                      for r in done})
     # fp32 (the paper's) unless a run trained in reduced precision; torch.compile changes speed, not the function
-    precisions = sorted({r.param("train.precision", "fp32") + (" compiled" if r.param("train.compile") == "True"
-                                                                else "") for r in done})
+    precisions = sorted({used_precision(r) for r in done})
     if precisions != ["fp32"]:
         models = [f"{m}, {'/'.join(precisions)}" for m in models]
     # Where the schedule stood at the last step: short runs on the paper's 5M-step decay end at ~1e-4, and

@@ -29,7 +29,7 @@ from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
-from gns_bench.train import distributed
+from gns_bench.train import autotune, distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 
 # Train settings that may change between an interrupted run and its resumption.
@@ -46,6 +46,7 @@ class TrainResult:
     steps_per_second: float
     wall_time_s: float  # training time (`StepClock`) over every call that led to this checkpoint (resumes too)
     eval_seconds: float = 0.0  # spent by this call in periodic evaluation (`on_eval`), not in wall_time_s
+    speed: autotune.SpeedSettings | None = None  # the precision and compile setting it trained with
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -127,6 +128,29 @@ class StepClock:
         return counted
 
 
+def _speed_settings(tc: TrainConfig, simulator: LearnedSimulator, sampler: WindowSampler, device: torch.device,
+                    world_size: int, steps_left: int) -> autotune.SpeedSettings:
+    """The precision and compile setting to train with: the config's, or for "auto" the fastest on this
+    machine (`autotune.choose`). Under data parallelism every rank must agree without a probe of its own:
+    "auto" trains in fp32, uncompiled."""
+    if world_size > 1:
+        return autotune.SpeedSettings("fp32" if tc.precision == "auto" else tc.precision,
+                                      False if tc.compile == "auto" else bool(tc.compile))
+    optimisers: dict[int, torch.optim.Optimizer] = {}
+    batch, noise, num_moving = step_inputs(sampler, 0, tc.batch_size, tc.noise_std)
+    batch, noise = batch.to(device), noise.to(device)
+
+    def probe_step(model: LearnedSimulator, precision: str) -> None:
+        optimiser = optimisers.setdefault(id(model), adam(model.parameters(), 0.0))  # lr 0: timing only
+        loss = training_loss(model, batch, noise, tc.position_correction, model, num_moving, 1, precision)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        float(loss.detach())
+
+    return autotune.choose(tc, simulator, probe_step, batch.window.shape[0], device, steps_left)
+
+
 def load_training_split(config: Config, dataset_dir: str | Path, metadata: Metadata) -> list[Trajectory]:
     """The train split, validated (`load_split` reports the first bad file, trajectory and field)."""
     return load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
@@ -173,14 +197,11 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)
-    if tc.compile:
-        simulator.network.compile(dynamic=True)  # in place: parameter names and checkpoints unchanged
-    model = group.wrap(simulator)
     optimiser = adam(simulator.parameters(), learning_rate(0, tc))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    step, earlier_wall_time = 0, 0.0
+    step, earlier_wall_time, speed = 0, 0.0, None
     if resume and checkpoint_path.exists():
         saved = load_checkpoint(checkpoint_path, device)
         _check_resumable(saved, config, metadata, checkpoint_path)
@@ -188,8 +209,15 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         optimiser.load_state_dict(saved["optimizer"])
         step = int(saved["step"])
         earlier_wall_time = float(saved.get("wall_time_s", 0.0))
+        if "speed" in saved:  # a resumed run trains on with the settings it chose
+            speed = autotune.SpeedSettings(**saved["speed"])
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
+    if speed is None:
+        speed = _speed_settings(tc, simulator, sampler, device, group.world_size, tc.steps - step)
+    if speed.compile:
+        simulator.network.compile(dynamic=True)  # in place: parameter names and checkpoints unchanged
+    model = group.wrap(simulator)
     if group.is_main:
         (out_dir / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
 
@@ -205,7 +233,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         save_checkpoint(checkpoint_path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
-            "wall_time_s": training_seconds()})
+            "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed)})
 
     def evaluate_now(at_step: int) -> None:
         nonlocal paused
@@ -235,7 +263,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             batch, noise, num_moving = step_inputs(sampler, step, tc.batch_size, tc.noise_std, group.rank,
                                                    group.world_size)
             loss = training_loss(simulator, batch.to(device), noise.to(device), tc.position_correction, model,
-                                 num_moving, group.world_size, tc.precision)
+                                 num_moving, group.world_size, speed.precision)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
@@ -268,4 +296,4 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     group.close()
     elapsed = clock.total - earlier_wall_time
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
-    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused)
+    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused, speed)

@@ -1,0 +1,136 @@
+"""`train.precision = "auto"` and `train.compile = "auto"`: the fastest settings for this machine, measured.
+
+What is fastest differs between the machines gns-bench runs on: on an Intel Xeon with AMX, bf16 with
+`torch.compile` was fastest; on an AMD EPYC with AVX-512 BF16 and no AMX, bf16 eager beat bf16 compiled
+(3.94 against 3.53 training steps a second on GOOP batches of ~2,100 nodes, and compiling cost 52 s). So
+nothing is hard-coded: a short probe times a few training steps of each candidate setting on a real batch of
+the run, on a copy of the model (the run's own weights and optimiser are untouched), and picks the fastest.
+`torch.compile` is chosen only when its saving over the run's steps pays for its compile time.
+
+The choice is cached per machine (GPU, or CPU model, its bf16 features and thread count; torch's version),
+model shape and graph size, in `$GNS_BENCH_CACHE` (default `~/.cache/gns-bench/autotune.json`), so a machine
+probes once per kind of run. The run records what it used (the checkpoint keeps it, so a resumed run trains
+on with the same settings) and the timings behind it.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from gns_bench.config import TrainConfig
+from gns_bench.devices import machine_key
+from gns_bench.model.simulator import LearnedSimulator
+
+WARM_UP_STEPS = 3  # not timed: allocation, autotuning kernels, and compilation for compiled candidates
+TIMED_STEPS = 8
+
+
+@dataclass(frozen=True)
+class SpeedSettings:
+    precision: str  # "fp32" or "bf16"
+    compile: bool
+    # how it was chosen: "given" (nothing auto), "probed", or "cached"; and seconds per step measured
+    source: str = "given"
+    seconds_per_step: dict[str, float] = field(default_factory=dict)  # "<precision>[+compile]" -> seconds
+    compile_seconds: float = 0.0
+
+    def describe(self) -> str:
+        settings = f"{self.precision}{' compiled' if self.compile else ''}"
+        if self.source == "given":
+            return settings
+        timings = ", ".join(f"{name} {seconds:.3g} s" for name, seconds in sorted(self.seconds_per_step.items()))
+        return f"{settings} ({self.source}: {timings} a step)"
+
+
+def candidates(config: TrainConfig) -> list[tuple[str, bool]]:
+    precisions = ["fp32", "bf16"] if config.precision == "auto" else [config.precision]
+    compiles = [False, True] if config.compile == "auto" else [bool(config.compile)]
+    return [(p, c) for p in precisions for c in compiles]
+
+
+def label(precision: str, compiled: bool) -> str:
+    return precision + ("+compile" if compiled else "")
+
+
+def cache_path() -> Path:
+    root = os.environ.get("GNS_BENCH_CACHE") or Path.home() / ".cache" / "gns-bench"
+    return Path(root) / "autotune.json"
+
+
+def cache_key(config: TrainConfig, simulator: LearnedSimulator, nodes: int, device: torch.device) -> str:
+    """The machine, the model's shape and the graph size (to a power of two) a choice holds for."""
+    model = simulator.config
+    shape = (f"M{model.message_passing_steps} L{model.latent_size} H{model.mlp_hidden_size}x{model.mlp_hidden_layers}"
+             f" D{simulator.dim} shared{int(model.shared_processor)} global{int(model.global_latent)}")
+    size = 2 ** round(math.log2(max(nodes, 1)))
+    return (f"{machine_key(device)} | {shape} | ~{size} nodes | batch {config.batch_size} | "
+            f"{'+'.join(label(p, c) for p, c in candidates(config))}")
+
+
+def choose(config: TrainConfig, simulator: LearnedSimulator, step_fn: Callable[[LearnedSimulator, str], None],
+           nodes: int, device: torch.device, steps_left: int, *, use_cache: bool = True) -> SpeedSettings:
+    """The settings to train with. Nothing auto: the config's own. Otherwise the cached choice for this
+    machine, model and graph size, or a probe: `step_fn(model, precision)` runs one training step of `model`
+    (a copy of `simulator`, compiled for compiled candidates) in `precision`."""
+    options = candidates(config)
+    if len(options) == 1:
+        return SpeedSettings(*options[0])
+    key = cache_key(config, simulator, nodes, device)
+    cache = _read_cache()
+    if use_cache and key in cache:
+        return SpeedSettings(**{**cache[key], "source": "cached"})
+    timings, compile_seconds = {}, 0.0
+    for precision, compiled in options:
+        model = copy.deepcopy(simulator)
+        if compiled:
+            model.network.compile(dynamic=True)
+        started = time.perf_counter()
+        for _ in range(WARM_UP_STEPS):
+            step_fn(model, precision)
+        warm_up = time.perf_counter() - started
+        started = time.perf_counter()
+        for _ in range(TIMED_STEPS):
+            step_fn(model, precision)
+        seconds = (time.perf_counter() - started) / TIMED_STEPS
+        timings[label(precision, compiled)] = seconds
+        if compiled:
+            compile_seconds = max(compile_seconds, warm_up - WARM_UP_STEPS * seconds)
+        del model
+    best = pick(timings, compile_seconds, steps_left)
+    choice = SpeedSettings(best[0], best[1], "probed", timings, compile_seconds)
+    cache[key] = {k: v for k, v in asdict(choice).items() if k != "source"}
+    _write_cache(cache)
+    return choice
+
+
+def pick(timings: dict[str, float], compile_seconds: float, steps_left: int) -> tuple[str, bool]:
+    """The setting with the least time for the run's remaining steps, compiling counted once."""
+    def total(name: str) -> float:
+        return timings[name] * steps_left + (compile_seconds if name.endswith("+compile") else 0.0)
+
+    name = min(timings, key=total)
+    return name.removesuffix("+compile"), name.endswith("+compile")
+
+
+def _read_cache() -> dict[str, dict]:
+    try:
+        return json.loads(cache_path().read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _write_cache(cache: dict[str, dict]) -> None:
+    path = cache_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)
