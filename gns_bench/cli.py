@@ -260,7 +260,8 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
                                  "'domains' for the table across all domain sweeps, 'stability' for the "
-                                 "stress sweeps, or 'all': every sweep with runs at the tier, then those two")
+                                 "stress sweeps, 'index' for the front page (reports/README.md: every claim of "
+                                 "the paper), or 'all': every sweep with runs at the tier, then those three")
     p.add_argument("--tier", default="smoke", choices=TIERS, help="which tier's runs to compile")
     p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
 
@@ -297,9 +298,9 @@ def _add_ui(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_ui(args: argparse.Namespace) -> None:
-    from gns_bench.tracking import serve_ui, tracking_uri
+    from gns_bench.tracking import serve_ui, tracking_uri, ui_url
 
-    print(f"MLflow UI for {tracking_uri()} at http://127.0.0.1:{args.port} (Ctrl-C stops it)", flush=True)
+    print(f"MLflow UI for {tracking_uri()} at {ui_url(args.port)} (Ctrl-C stops it)", flush=True)
     serve_ui(args.port)
 
 
@@ -355,11 +356,29 @@ def cmd_stress(args: argparse.Namespace) -> None:
 
 
 def _print_summary(summary) -> None:
-    print(f"MLflow run: {summary.run_id}")
+    from gns_bench.tracking import ui_url
+
+    print(f"MLflow run: {summary.run_id} (after `gns-bench ui`: {ui_url(run_id=summary.run_id)})")
     print(f"run directory: {summary.out_dir.resolve()}")
-    for key in ("one_step_mse", "one_step_mse_moving", "rollout_mse", "rollout_mse_moving", "baseline_cv_rollout_mse"):
-        if key in summary.metrics:
-            print(f"  {key:24s} {summary.metrics[key]:.4g}")
+    for line in summary_lines(summary.metrics):
+        print(f"  {line}")
+
+
+def summary_lines(metrics: dict[str, float]) -> list[str]:
+    """The paper's metrics, each beside what it is compared with, over the same steps (the `_moving` figures
+    and the rollout steps covered in brackets)."""
+    if "rollout_mse" not in metrics:
+        return []
+    steps = metrics.get("rollout_steps", float("nan"))
+    stopped = metrics.get("rollout_stopped", 0.0) > 0
+    cv = metrics.get("baseline_cv_same_steps_mse", float("nan"))
+    rollout = metrics["rollout_mse"]
+    return [f"one-step MSE       {metrics.get('one_step_mse', float('nan')):.4g} (moving particles only: "
+            f"{metrics.get('one_step_mse_moving', float('nan')):.4g})",
+            f"rollout MSE        {rollout:.4g} over {steps:.0f} steps on average"
+            + (" (a monitor stopped some rollouts)" if stopped else "")
+            + f" (moving particles only: {metrics.get('rollout_mse_moving', float('nan')):.4g})",
+            f"constant velocity  {cv:.4g} over the same steps: GNS / constant velocity = {rollout / cv:.3g}x"]
 
 
 COMMANDS = {

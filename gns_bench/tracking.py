@@ -78,10 +78,20 @@ def environment_tags(device: str) -> dict[str, str]:
             "python_version": platform.python_version(), "hardware": hardware_description(device)}
 
 
+# MLflow's experiment kind: "custom_model_development" is its "Machine learning" kind (runs, their metrics and
+# parameters), not GenAI (traces, evaluations, prompts). MLflow 3's UI reads it (its assistant too); the 3.17 UI
+# picks its layout per browser instead (the "GenAI / Model training" switch, or ?workflowType=machine_learning).
+EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
+EXPERIMENT_KIND = "custom_model_development"
+
+
 def experiment_id(name: str) -> str:
+    """The id of experiment `name`, created (tagged as a model-training experiment) if it does not exist yet;
+    an existing one without a kind gets the tag too, one that has a kind keeps it."""
     mlflow = _mlflow()
     experiment = mlflow.get_experiment_by_name(name)
     if experiment is not None:
+        _ensure_kind(experiment)
         return experiment.experiment_id
     location = None
     uri = tracking_uri()
@@ -90,13 +100,31 @@ def experiment_id(name: str) -> str:
     from mlflow.exceptions import MlflowException
 
     try:
-        return mlflow.create_experiment(name, artifact_location=location)
+        return mlflow.create_experiment(name, artifact_location=location, tags={EXPERIMENT_KIND_TAG: EXPERIMENT_KIND})
     except MlflowException:
         # Parallel runs of one sweep (submitit, torchrun) may create it at the same moment: use theirs.
         experiment = mlflow.get_experiment_by_name(name)
         if experiment is None:
             raise
+        _ensure_kind(experiment)
         return experiment.experiment_id
+
+
+def _ensure_kind(experiment: Any) -> None:
+    """Tag an active experiment made before gns-bench set its kind (or by other code) as model training. Only a
+    UI hint: a store that refuses the tag (permissions) is warned about, not fatal; a deleted experiment is
+    left for `start_run` to refuse with MLflow's own error."""
+    if experiment.lifecycle_stage != "active" or EXPERIMENT_KIND_TAG in (experiment.tags or {}):
+        return
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
+    try:
+        MlflowClient(tracking_uri=tracking_uri()).set_experiment_tag(experiment.experiment_id, EXPERIMENT_KIND_TAG,
+                                                                     EXPERIMENT_KIND)
+    except MlflowException as exc:
+        logging.getLogger(__name__).warning("could not tag experiment %r with %s=%s: %s", experiment.name,
+                                            EXPERIMENT_KIND_TAG, EXPERIMENT_KIND, exc)
 
 
 PARAM_BATCH = 90  # MLflow caps a batch at 100 params
@@ -269,6 +297,21 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
         raise
     client.set_terminated(run_id, status="FINISHED")
     return run_id
+
+
+def ui_url(port: int = 5000, experiment: str | None = None, run_id: str | None = None) -> str:
+    """Where `gns-bench ui` shows an experiment or a run. MLflow 3.17's UI opens in its GenAI layout unless the
+    URL asks for the model-training one (`workflowType=machine_learning`; the experiment kind tag alone does not
+    switch it), so every link gns-bench prints asks for it."""
+    page = ""
+    if experiment is not None or run_id is not None:
+        mlflow = _mlflow()
+        if run_id is not None:
+            page = f"experiments/{mlflow.get_run(run_id).info.experiment_id}/runs/{run_id}"
+        else:
+            found = mlflow.get_experiment_by_name(experiment)
+            page = f"experiments/{found.experiment_id}" if found else ""
+    return f"http://127.0.0.1:{port}/#/{page}?workflowType=machine_learning"
 
 
 def serve_ui(port: int = 5000) -> int:

@@ -168,3 +168,15 @@ def test_generate_overwrite_replaces_the_default_dataset_folder(tmp_path: Path, 
     assert main(["generate", "notadomain", "--overwrite"]) == 2
     err = capsys.readouterr().err
     assert "unknown domain 'notadomain'" in err and "tiny" in err and "waterdrop" in err
+
+
+def test_the_summary_prints_each_metric_beside_its_baseline_over_the_same_steps() -> None:
+    """A rollout a monitor stopped at step 70 of 294 is compared with constant velocity over those 70 steps,
+    not the whole horizon's baseline."""
+    from gns_bench.cli import summary_lines
+
+    lines = summary_lines({"one_step_mse": 1e-8, "one_step_mse_moving": 2e-8, "rollout_mse": 0.002858,
+                           "rollout_mse_moving": 0.003, "rollout_steps": 70.0, "rollout_stopped": 1.0,
+                           "baseline_cv_rollout_mse": 0.07104, "baseline_cv_same_steps_mse": 0.0150})
+    assert lines[2] == "constant velocity  0.015 over the same steps: GNS / constant velocity = 0.191x"
+    assert "over 70 steps" in lines[1] and "stopped" in lines[1] and "0.07104" not in "".join(lines)

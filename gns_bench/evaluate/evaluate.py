@@ -238,6 +238,9 @@ def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:
         arrays[f"{i:05d}/particle_type"] = r.particle_type
         if r.birth_step is not None:
             arrays[f"{i:05d}/birth_step"] = r.birth_step
+        if r.stopped_at is not None:  # where a health monitor stopped it, and why (pictures mark it)
+            arrays[f"{i:05d}/stopped_at"] = np.array(r.stopped_at)
+            arrays[f"{i:05d}/stop_reason"] = np.array(r.stop_reason or "")
     path = Path(path)
     np.savez_compressed(path, **arrays)
     return path

@@ -60,20 +60,22 @@ def _paired_with_cv(rows: list[RunRow]) -> list[RunRow]:
 
 
 def cv_ratio(rows: list[RunRow]) -> str:
-    """GNS / constant-velocity rollout MSE (means over runs), both over the same steps; "—" where unknown."""
+    """GNS / constant-velocity rollout MSE (means over runs) printed beside the two numbers it divides, both
+    over the same steps: "0.38x (0.034 / 0.091)"; "—" where unknown."""
     paired = _paired_with_cv(rows)
     if not paired:
         return "—"
-    return ratio(mean_std([r.metric("rollout_mse") for r in paired])[0],
-                 mean_std([comparable_cv(r) for r in paired])[0])
+    gns = mean_std([r.metric("rollout_mse") for r in paired])[0]
+    cv = mean_std([comparable_cv(r) for r in paired])[0]
+    return f"{ratio(gns, cv)} ({fmt(gns)} / {fmt(cv)})"
 
 
 def against_cv(rows: list[RunRow]) -> str:
-    """`cv_ratio` in words, for the domain table's baseline cell."""
+    """`cv_ratio`, saying when the steps compared end where a monitor stopped the GNS rollouts."""
     paired = _paired_with_cv(rows)
     if not paired:
         return "GNS rollouts stopped" if any(r.metric("rollout_stopped") > 0 for r in rows) else "—"
-    return cv_ratio(paired) + (" over the steps before the stops"
+    return cv_ratio(paired) + (", over the steps before the stops"
                                if any(r.metric("rollout_stopped") > 0 for r in paired) else "")
 
 
@@ -120,22 +122,55 @@ def budget(rows: list[RunRow]) -> str:
             f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
 
 
-# The paper's numbers come from the release's metrics (train.py), so ours are logged the same way.
-DEFINITIONS = ("One-step and rollout MSE are the release's (learning_to_simulate/train.py): means over every "
-               "particle, kinematic ones included, and for the rollout over sequence_length - 6 steps; MLflow "
-               "also holds `one_step_mse_moving` and `rollout_mse_moving` without kinematic particles. ")
+SMOKE_NOTICE = ("**Smoke tier: a pipeline check, not a result.** Tiny models trained for a few steps on tiny "
+                "datasets show that generation, training, evaluation, tracking and reporting run end to end; "
+                "their numbers mean nothing, so this report compares none of them with the paper and draws no "
+                "conclusion.")
+
+# Every metric a report shows, defined once at its top (the paper's definitions first: Sec. 4.4, App. B.4).
+METRIC_DEFINITIONS = [
+    "**one-step MSE**: squared error of the predicted next position from clean inputs, averaged over every "
+    "particle (kinematic ones included), dimension and window of the test split; position units² (the box is "
+    "about 1 wide). The release's definition (learning_to_simulate/train.py), which the paper's Table 1 reports.",
+    "**rollout MSE**: squared position error of a rollout fed its own predictions, averaged over the release's "
+    "`sequence_length - 6` steps, every particle (kinematic ones follow the data and add 0) and dimension; mean "
+    "over test trajectories. When a health monitor stopped a rollout, over the steps before the stop.",
+    "**GNS / constant velocity**: rollout MSE divided by that of extrapolating every particle at its last "
+    "velocity over the same trajectories and steps, printed as ratio (GNS / baseline); below 1x the model beats "
+    "the trivial baseline.",
+    "**OT**: exact earth mover's distance W2² between the predicted and true clouds of moving particles "
+    "(squared Euclidean cost, uniform weights, POT's `emd2`; position units²), mean over 10 evenly spaced "
+    "rollout steps; App. B.4.",
+    "**MMD**: squared maximum mean discrepancy between the same clouds, Gaussian kernel of width 2 R (R the "
+    "connectivity radius), biased V-statistic; App. B.4.",
+    "**KE error**: sum over the rollout of |kinetic energy predicted - true| over the sum of the true kinetic "
+    "energy (mean over moving particles, unit mass, velocities per stored frame); 0 = the energy history "
+    "reproduced, 1 = e.g. a rollout that froze.",
+]
 
 
-def budget_statement(rows: list[RunRow]) -> str:
-    """The plain-words explanation of gaps to the paper: how far our training budget is from its 20M steps."""
+def budget_statement(rows: list[RunRow], tier: str = "") -> str:
+    """Once, at the top of a report: what the runs cost (tier, steps, precision, hardware, training time, data)
+    and the plain-words reading of gaps to the paper. At the smoke tier, only that it is a pipeline check."""
+    if tier == "smoke":
+        return SMOKE_NOTICE
     done = [r for r in rows if r.ok]
     paper = paper_training_steps()
     if not done:
         return "No finished run: nothing to compare with the paper yet."
     steps = max(int(float(r.param("train.steps", "0"))) for r in done)
-    fraction = steps / paper
-    text = (f"Budget: at most {steps:,} training steps per run, {100 * fraction:.2g}% of the paper's {paper:,} "
-            f"(batch 2). ")
+    final = sorted({int(r.metric("train/final_step")) for r in done if math.isfinite(r.metric("train/final_step"))})
+    trained = final or [steps]
+    fraction = max(trained) / paper
+    wall = [r.metric("train/wall_time_s") for r in done if math.isfinite(r.metric("train/wall_time_s"))]
+    hardware = "; ".join(sorted({r.tag("hardware", "?") for r in done}))
+    precisions = "/".join(sorted({used_precision(r) for r in done}))
+    data = "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") or "?" for r in done}))
+    text = (f"**Budget{f' ({tier} tier)' if tier else ''}.** {len(done)} finished run(s): "
+            f"{_span(trained)} training steps of batch 2 ({100 * fraction:.2g}% of the paper's {paper:,} at most), "
+            f"{precisions}, {fmt(sum(wall) / 3600) if wall else '?'} h of training in all"
+            f" ({fmt(min(wall) / 60) if wall else '?'}-{fmt(max(wall) / 60) if wall else '?'} min a run) on "
+            f"{hardware}; data tier {data}. ")
     if fraction < 0.01:
         text += ("That is far below the paper's budget, so gaps to its figures are expected; a number at or "
                  "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and does "
@@ -151,35 +186,31 @@ def budget_statement(rows: list[RunRow]) -> str:
     if stopped:
         text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
                  f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
-                 "their rollout MSE covers only the steps before the stop. ")
+                 "their rollout MSE covers only the steps before the stop, and the constant-velocity baseline "
+                 "beside it covers the same steps. ")
     flagged = [r for r in done if r.metric("rollout_flagged") > 0]
     if flagged:
         text += (f"In {len(flagged)} of {len(done)} runs a monitor outside `eval.stop_on` flagged some rollouts "
                  "(by default: a particle out of the bounds) and they ran on, as the paper's do: the rollout MSE "
                  "counts that error (MLflow tag `<split>/rollouts_flagged` says where: "
                  f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
-    against_cv = [r.metric("rollout_mse") / comparable_cv(r) for r in done if comparable_cv(r) > 0]
-    against_cv = [x for x in against_cv if math.isfinite(x)]
-    left_out = sum(r.metric("rollout_stopped") > 0 and not math.isfinite(comparable_cv(r)) for r in done)
-    if against_cv:
-        low, high = min(against_cv), max(against_cv)
-        span = f"{low:.2g}x" + (f" to {high:.2g}x" if high > low else "")
-        text += (f"On the same trajectories and steps, the GNS's rollout MSE is {span} that of a "
-                 "constant-velocity extrapolation (below 1x: the model beats it"
-                 + (f"; left out: {left_out} run(s) with stopped rollouts, evaluated before the baseline over "
-                    "the same steps was logged" if left_out else "") + "). ")
-    text += DEFINITIONS
     legacy = [r for r in done if not math.isfinite(r.metric("rollout_mse_moving"))]
     if legacy:
         text += (f"{len(legacy)} of {len(done)} runs were evaluated before issue #17 "
                  f"({', '.join(f'`{r.run_id}`' for r in legacy)}): their MSEs leave kinematic particles out and "
                  "their rollout MSE covers one step more (it reads higher by up to N_all / N_moving on domains with "
                  "obstacles), and their model summed the updated edges (`model.aggregate = \"updated_edges\"`). ")
-    tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})
-    if any(t != "paper" for t in tiers):
-        text += f"Datasets are the '{'/'.join(tiers)}' tier (fewer and shorter trajectories than the paper's). "
     if any(r.tag("dataset_tier") for r in done):  # set by gns-bench's generators; imported datasets have none
         text += ("The ground truth comes from gns-bench's own solvers (`datasets/<domain>.toml`), in the paper's "
                  "format and units but not its trajectories: the paper's numbers are a reference on like scenes, "
                  "not on the same test set. ")
-    return text
+    return text.rstrip()
+
+
+def _span(values: list[int]) -> str:
+    low, high = min(values), max(values)
+    return f"{low:,}" if low == high else f"{low:,}-{high:,}"
+
+
+def definitions_section() -> list[str]:
+    return ["## Metrics", "", *(f"- {line}" for line in METRIC_DEFINITIONS), ""]

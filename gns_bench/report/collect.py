@@ -107,13 +107,24 @@ def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> li
     return rows
 
 
-def write_run_summary(path: Path, sweep: SweepSpec, tier: str, rows: list[RunRow]) -> Path:
-    """The rows' runs as JSON (params, final metrics, tags with hardware and timing, curves), sorted by run."""
+def write_run_summary(path: Path, sweep: SweepSpec, tier: str, rows: list[RunRow],
+                      extras: dict[str, Any] | None = None) -> Path:
+    """The rows' runs as JSON (params, final metrics, tags with hardware and timing, curves), sorted by run,
+    and `extras`: what else the report showed that MLflow's artifacts held (e.g. which rollouts it drew)."""
     runs = [dataclasses.asdict(r.record) for r in sorted(rows, key=lambda r: r.planned.name) if r.record]
     payload = {"sweep": sweep.name, "tier": tier, "note": "written by gns-bench report; read back by it when "
-               "MLflow no longer holds these runs", "runs": runs}
+               "MLflow no longer holds these runs", "runs": runs, "extras": extras or {}}
     path.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
     return path
+
+
+def read_summary_extras(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text()).get("extras", {}))
+    except ValueError:
+        return {}
 
 
 def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
@@ -149,7 +160,15 @@ def load_rollouts(run_id: str, artifact_path: str, workdir: Path) -> list[Rollou
         return []
     with np.load(local) as data:
         keys = sorted({k.split("/")[0] for k in data.files})
-        return [RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"], data[f"{k}/initial_window"],
-                              data[f"{k}/particle_type"],
-                              birth_step=data[f"{k}/birth_step"] if f"{k}/birth_step" in data.files else None)
-                for k in keys]
+        def optional(key: str, name: str):
+            return data[f"{key}/{name}"] if f"{key}/{name}" in data.files else None
+
+        results = []
+        for k in keys:
+            stopped_at, reason = optional(k, "stopped_at"), optional(k, "stop_reason")
+            results.append(RolloutResult(data[f"{k}/predicted"], data[f"{k}/ground_truth"],
+                                         data[f"{k}/initial_window"], data[f"{k}/particle_type"],
+                                         stopped_at=None if stopped_at is None else int(stopped_at),
+                                         stop_reason=None if reason is None else str(reason),
+                                         birth_step=optional(k, "birth_step")))
+        return results

@@ -1,8 +1,11 @@
 """Report figures: ablation panels (shaped like the paper's Fig. 4), time against error with its Pareto
-front, and rollouts (ground truth beside prediction) as PNG and GIF. Small files: modest dpi."""
+front, rigid-body drift over a rollout (App. C.7), and rollouts (ground truth beside prediction) as PNG and
+GIF. Every axis names its quantity and unit; a configuration has one colour in every figure
+(`evaluate.plots.config_colours`). Small files: modest dpi."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,12 +19,35 @@ import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from gns_bench.data.format import type_colours  # noqa: E402
-from gns_bench.evaluate.plots import VIEW_AXES, plot_rollout  # noqa: E402
+from gns_bench.evaluate import metrics  # noqa: E402
+from gns_bench.evaluate.plots import (  # noqa: E402
+    AXIS_NAMES,
+    GNS_LINE,
+    MSE_UNIT,
+    PALETTE,
+    POSITION_UNIT,
+    STEP_LABEL,
+    STOP_COLOUR,
+    TRUTH_LINE,
+    VIEW_AXES,
+    config_colours,
+    config_label,
+    frame_steps,
+    plot_rollout,
+    rollout_extent,
+    stop_step,
+    stop_text,
+    type_legend_handles,
+)
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 
 DPI = 80
 PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot", "optimal transport"),
           ("mmd", "MMD"))
+# y-axis label of each panel: the quantity and its unit (OT is W2^2, squared Euclidean cost; MMD is squared
+# and dimensionless, a difference of mean kernel values)
+PANEL_UNITS = {"one_step_mse": f"MSE ({MSE_UNIT})", "rollout_mse": f"MSE ({MSE_UNIT})",
+               "ot": f"W₂² ({MSE_UNIT})", "mmd": "MMD² (dimensionless)"}
 
 
 def _spans_decades(data: np.ndarray) -> bool:
@@ -53,17 +79,21 @@ def draw_ablation(axis: str, values: list[Any], stats: dict[str, list[tuple[floa
     scale = reference.get("scale", "linear")
     numeric = scale != "category" and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
     x = np.asarray(values, dtype=float) if numeric else np.arange(len(values), dtype=float)
-    fig, axes = plt.subplots(1, len(PANELS), figsize=(3.0 * len(PANELS), 2.8))
+    name = axis.split(".")[-1]
+    # each value is a configuration: coloured as its runs (`<name>=<value>-seed<s>`) are in the other figures
+    colours = config_colours([f"{name}={v}" for v in values])
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(3.0 * len(PANELS), 2.9))
     for ax, (metric, label) in zip(axes, PANELS, strict=True):
         mean = np.array([s[0] for s in stats[metric]])
         std = np.array([s[1] for s in stats[metric]])
-        ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, lw=1)
+        ax.errorbar(x, mean, yerr=std, marker="", c="0.45", capsize=3, lw=1)
+        ax.scatter(x, mean, s=24, c=[colours[f"{name}={v}"] for v in values], zorder=3, linewidths=0)
         if "default" in reference:
             default = reference["default"]
             where = (float(default) if numeric else
                      next((float(i) for i, v in enumerate(values) if str(v) == str(default)), None))
             if where is not None:
-                ax.axvline(where, ls="--", c="tab:red", lw=1, label="paper default")
+                ax.axvline(where, ls="--", c="k", lw=1, label="paper default")
         if numeric and scale == "log":
             positive = x[x > 0]
             if (x <= 0).any() and positive.size:
@@ -76,7 +106,8 @@ def draw_ablation(axis: str, values: list[Any], stats: dict[str, list[tuple[floa
             ax.set_yscale("log")
         ax.margins(x=0.15)
         ax.set_title(label, fontsize=9)
-        ax.set_xlabel(axis.split(".")[-1], fontsize=8)
+        ax.set_xlabel(name, fontsize=8)  # a configuration value: its unit is the config key's
+        ax.set_ylabel(PANEL_UNITS[metric], fontsize=8)
         ax.tick_params(labelsize=7)
     return fig
 
@@ -92,16 +123,22 @@ def pareto_front(cost: np.ndarray, error: np.ndarray) -> np.ndarray:
     return np.asarray(front, dtype=int)
 
 
+MAX_LEGEND_CONFIGS = 10  # more configurations than this: only the Pareto front's points are named
+
+
 def time_error_figure(points: list[tuple[str, float, float, float]], path: Path) -> Path:
-    """points: (label, training seconds, rollout seconds per step, rollout MSE), one per run."""
-    fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.2))
+    """points: (label, training seconds, rollout seconds per step, rollout MSE), one per run; a run's colour
+    is its configuration's (seeds of one configuration share it)."""
+    fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.4))
     error = np.array([p[3] for p in points], dtype=float)
+    colours = config_colours([p[0] for p in points])
+    configs = list(dict.fromkeys(config_label(p[0]) for p in points))
     for ax, column, xlabel in ((axes[0], 1, "training wall time (s)"), (axes[1], 2, "rollout time per step (s)")):
         cost = np.array([p[column] for p in points], dtype=float)
-        ax.scatter(cost, error, s=18, c="tab:blue", label="runs")
+        ax.scatter(cost, error, s=20, c=[colours[p[0]] for p in points], linewidths=0, zorder=3)
         front = pareto_front(cost, error)
         if front.size:
-            ax.plot(cost[front], error[front], "-o", c="tab:red", ms=4, lw=1, mfc="none", label="Pareto front")
+            ax.plot(cost[front], error[front], "-o", c="k", ms=6, lw=1, mfc="none", label="Pareto front")
         for i in front:
             ax.annotate(points[i][0], (cost[i], error[i]), fontsize=6, xytext=(3, 3), textcoords="offset points")
         if _spans_decades(cost):
@@ -110,71 +147,143 @@ def time_error_figure(points: list[tuple[str, float, float, float]], path: Path)
             ax.set_yscale("log")
         ax.margins(0.15)
         ax.set_xlabel(xlabel, fontsize=8)
-        ax.set_ylabel("rollout MSE", fontsize=8)
+        ax.set_ylabel(f"rollout MSE ({MSE_UNIT})", fontsize=8)
         ax.tick_params(labelsize=7)
+    if len(configs) <= MAX_LEGEND_CONFIGS:  # the configurations, by colour, beside the Pareto front's entry
+        by_config = {config_label(p[0]): colours[p[0]] for p in points}
+        axes[1].legend(handles=[plt.Line2D([], [], marker="o", ls="", c=by_config[c], label=c) for c in configs],
+                       fontsize=6, loc="best")
     return _save(fig, axes, path)
 
 
-def _extent(result: RolloutResult, dims: tuple[int, int]) -> list[list[float]]:
-    """Plot limits from the ground truth, with a margin: predictions that fly off show as leaving the box."""
-    frames = np.concatenate([result.initial_window, result.ground_truth])[..., list(dims)]
-    lo, hi = frames.reshape(-1, 2).min(0), frames.reshape(-1, 2).max(0)
-    pad = 0.05 * float(max(hi - lo)) + 1e-6
-    return [[float(lo[0] - pad), float(hi[0] + pad)], [float(lo[1] - pad), float(hi[1] + pad)]]
 
+
+# ----------------------------------------------------------------------------------------------
+# Rigid bodies (App. C.7): does the GNS keep BOXBATH's cube rigid, as the solver's shape matching does?
+# ----------------------------------------------------------------------------------------------
+
+def rigidity_curves(result: RolloutResult, rigid_type: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(GNS, ground truth) `metrics.rigidity_drift` of the particles of `rigid_type`, from the start of the
+    rollout (the last input frame, step 0) to each step; None without a rigid body. The GNS curve ends where a
+    monitor stopped the rollout."""
+    rigid = result.particle_type == rigid_type
+    if result.birth_step is not None:  # inflow: only a body present from the start has a rest shape
+        rigid &= result.birth_step < result.initial_window.shape[0]
+    if rigid.sum() < 2:
+        return None
+    start = result.initial_window[-1:]
+    return (metrics.rigidity_drift(np.concatenate([start, result.predicted]), rigid),
+            metrics.rigidity_drift(np.concatenate([start, result.ground_truth]), rigid))
+
+
+def rigidity_figure(rollouts: Sequence[RolloutResult], rigid_type: int, path: Path,
+                    labels: Sequence[str] | None = None, max_trajectories: int = 8) -> Path | None:
+    """Rigid-body drift against the rollout step, GNS solid and ground truth dashed, one colour per
+    trajectory (the first `max_trajectories` with a body of `rigid_type`); an x where a monitor stopped the
+    GNS. None (no file) when no rollout has such a body. `labels[i]` names rollout i (default: trajectory i)."""
+    curves = [(i, c) for i, r in enumerate(rollouts) if (c := rigidity_curves(r, rigid_type)) is not None]
+    if not curves:
+        return None
+    shown = curves[:max_trajectories]
+    fig, ax = plt.subplots(figsize=(5.6, 3.6), layout="constrained")
+    series, stops = [], []
+    handles = [plt.Line2D([], [], c="k", ls=GNS_LINE, label="GNS"),
+               plt.Line2D([], [], c="k", ls=TRUTH_LINE, label="ground truth")]
+    for n, (i, (gns, truth)) in enumerate(shown):
+        colour = PALETTE[n % len(PALETTE)]
+        name = labels[i] if labels is not None else f"trajectory {i}"
+        series.append((colour, gns, truth))
+        if stop_step(rollouts[i]) is not None:
+            stops.append((gns.size - 1, gns[-1]))
+        handles.append(plt.Line2D([], [], c=colour, lw=3, label=name))
+    values = np.concatenate([c for _, gns, truth in series for c in (gns[1:], truth[1:])])
+    log = _spans_decades(values[values > 0])
+    for colour, gns, truth in series:
+        for curve, style, width in ((truth, TRUTH_LINE, 1.0), (gns, GNS_LINE, 1.3)):
+            # step 0 is the reference itself (drift 0 by definition); a log scale cannot show 0 at all
+            y = np.where(curve > 0, curve, np.nan) if log else curve
+            ax.plot(np.arange(len(curve)), y, ls=style, c=colour, lw=width)
+    if stops:
+        ax.plot(*np.transpose(stops), marker="x", c=STOP_COLOUR, ms=7, mew=1.5, ls="")
+        handles.insert(2, plt.Line2D([], [], marker="x", c=STOP_COLOUR, ls="", label="stopped by a monitor"))
+    if log:
+        ax.set_yscale("log")
+    ax.set_xlabel(STEP_LABEL, fontsize=8)
+    ax.set_ylabel("rigidity drift (fraction of rest distance)", fontsize=8)
+    more = f" (first {len(shown)} of {len(curves)} trajectories)" if len(curves) > len(shown) else ""
+    ax.set_title(f"rigid body: RMS |d_ij(t) − d_ij(0)| / RMS d_ij(0){more}", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    ax.legend(handles=handles, fontsize=6, loc="best", ncol=2)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# Rollouts: ground truth beside GNS, one frame for both, the stop and flagged steps marked
+# ----------------------------------------------------------------------------------------------
 
 def _thin(result: RolloutResult, max_particles: int = 5000) -> RolloutResult:
-    """Every k-th particle, so pictures of 20k-particle 3D scenes stay small files."""
+    """Every k-th particle, so pictures of 20k-particle 3D scenes stay small files (the stop kept)."""
     stride = max(1, -(-len(result.particle_type) // max_particles))
     if stride == 1:
         return result
-    return RolloutResult(result.predicted[:, ::stride], result.ground_truth[:, ::stride],
-                         result.initial_window[:, ::stride], result.particle_type[::stride],
-                         birth_step=None if result.birth_step is None else result.birth_step[::stride])
+    return dataclasses.replace(
+        result, predicted=result.predicted[:, ::stride], ground_truth=result.ground_truth[:, ::stride],
+        initial_window=result.initial_window[:, ::stride], particle_type=result.particle_type[::stride],
+        birth_step=None if result.birth_step is None else result.birth_step[::stride])
 
 
-def rollout_png(result: RolloutResult, path: Path, title: str) -> Path:
-    """Ground truth and prediction at 4 steps (3D data seen from the side, `VIEW_AXES`)."""
+def rollout_png(result: RolloutResult, path: Path, title: str, marks: dict[int, str] | None = None) -> Path:
+    """Ground truth and prediction at 4 steps over the whole horizon (3D data seen from the side, `VIEW_AXES`),
+    the step a monitor stopped the rollout and `marks` (step index -> label: where one flagged it) shown."""
+    return plot_rollout(_thin(result), path, None, num_frames=4, title=title, marks=marks)
+
+
+def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int = 30, fps: int = 8,
+                marks: dict[int, str] | None = None) -> Path:
+    """An animation: ground truth on the left, GNS on the right, in one frame, at most `max_frames` frames over
+    the whole horizon; after a monitor stopped the rollout the GNS panel says so, and the caption names the
+    steps `marks` flagged once they are reached."""
     result = _thin(result)
-    dims = VIEW_AXES
-    limits = _extent(result, dims)
-    bounds = [[0.0, 1.0]] * result.predicted.shape[2]
-    bounds[dims[0]], bounds[dims[1]] = limits[0], limits[1]
-    return plot_rollout(result, path, bounds, num_frames=4, title=title)
-
-
-def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int = 30, fps: int = 8) -> Path:
-    """An animation: ground truth on the left, GNS on the right, at most `max_frames` frames."""
-    result = _thin(result)
-    k = min(result.predicted.shape[0], result.ground_truth.shape[0])
-    if k == 0:
-        raise ValueError("empty rollout: nothing to animate")
-    steps = np.unique(np.linspace(0, k - 1, min(max_frames, k)).round().astype(int))
+    marks = dict(marks or {})
+    steps = frame_steps(result, max_frames)
     dims = list(VIEW_AXES)
-    limits = _extent(result, (dims[0], dims[1]))
+    limits = rollout_extent(result, (dims[0], dims[1]))
     colours = type_colours(result.particle_type)
     size = float(np.clip(3000.0 / len(result.particle_type), 1.0, 10.0))  # visible dots for small scenes too
-    fig, axes = plt.subplots(1, 2, figsize=(5.0, 2.8))
+    fig, axes = plt.subplots(1, 2, figsize=(5.0, 3.3), sharex=True, sharey=True, layout="constrained")
     scatters = []
-    start = result.ground_truth[0][:, dims]  # placeholders; `draw` sets every frame's points
+    start = result.ground_truth[0][:, dims] if len(result.ground_truth) else result.initial_window[-1][:, dims]
     for ax, label in ((axes[0], "ground truth"), (axes[1], "GNS")):
         scatters.append(ax.scatter(start[:, 0], start[:, 1], s=size, c=colours, linewidths=0))
         ax.set_xlim(limits[0])
         ax.set_ylim(limits[1])
         ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
+        ax.tick_params(labelsize=6)
         ax.set_title(label, fontsize=8)
+        ax.set_xlabel(f"{AXIS_NAMES[dims[0]]} ({POSITION_UNIT})", fontsize=7)
+    axes[0].set_ylabel(f"{AXIS_NAMES[dims[1]]} ({POSITION_UNIT})", fontsize=7)
+    stopped = axes[1].text(0.5, 0.5, stop_text(result).replace(" (", "\n("), transform=axes[1].transAxes,
+                           ha="center", va="center", fontsize=7, color=STOP_COLOUR, visible=False)
+    fig.legend(handles=type_legend_handles(result.particle_type), loc="outside lower center",
+               ncol=len(set(result.particle_type.tolist())), fontsize=6, frameon=False)
     caption = fig.suptitle(title, fontsize=8)
 
     def draw(i: int) -> list:
         step = steps[i]
         hidden = ~result.shown_at(step)  # inflow particles waiting to enter: NaN offsets are not drawn
         for scatter, frames in zip(scatters, (result.ground_truth, result.predicted), strict=True):
-            xy = frames[step][:, dims].astype(float)
-            xy[hidden] = np.nan
+            if step < frames.shape[0]:
+                xy = frames[step][:, dims].astype(float)
+                xy[hidden] = np.nan
+            else:  # past the stop (or the data): nothing to draw
+                xy = np.full((len(result.particle_type), 2), np.nan)
             scatter.set_offsets(xy)
-        caption.set_text(f"{title} - step {step + 1}")
+        stopped.set_visible(step >= result.predicted.shape[0])
+        flagged = [f"{text} (step {s})" for s, text in sorted(marks.items()) if s <= step]
+        caption.set_text(f"{title} - step {step + 1}" + ("\nflagged: " + "; ".join(flagged) if flagged else ""))
         return scatters
 
     animation = FuncAnimation(fig, draw, frames=len(steps), blit=False)

@@ -19,16 +19,17 @@ from gns_bench.report import figures
 from gns_bench.report.cells import (
     MISSING,
     against_cv,
-    budget,
     budget_statement,
     comparable_cv,
     cv_ratio,
+    definitions_section,
     fmt,
     ratio,
     run_id_cell,
     run_ids_cell,
     status_cell,
     steps_covered,
+    used_precision,
 )
 from gns_bench.report.collect import (
     METRICS,
@@ -39,9 +40,11 @@ from gns_bench.report.collect import (
     domain_sweeps,
     load_rollouts,
     mean_std,
+    read_summary_extras,
     resolve_sweep,
     write_run_summary,
 )
+from gns_bench.report.index import write_index
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
@@ -52,38 +55,60 @@ from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sw
 # Domain table (Table 1, App. C.4)
 # ----------------------------------------------------------------------------------------------
 
-DOMAIN_HEADER = ("| domain | simulator | dim | max N | K | one-step MSE (release's) | paper | ratio "
-                 "| rollout MSE (release's) | paper | ratio "
-                 "| constant velocity (GNS / it) | CConv rollout (paper) | OT | MMD | KE error | budget | status "
+ACCURACY_HEADER = ("| domain | simulator | max N | K | one-step MSE | paper | ratio | rollout MSE | paper | ratio "
+                   "| GNS / constant velocity | seeds |")
+DISTRIBUTION_HEADER = "| domain | OT | MMD | KE error | rollout steps covered |"
+BUDGET_HEADER = ("| domain | training steps | precision | training time (min) | hardware | data tier | status "
                  "| MLflow runs |")
 
 
-def domain_row(sweep: SweepSpec, rows: list[RunRow]) -> str:
+def _table(header: str, rows: list[list[str]]) -> list[str]:
+    return [header, "|" + "---|" * header.count(" | ") + "---|", *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def accuracy_row(sweep: SweepSpec, rows: list[RunRow], compare: bool) -> list[str]:
+    """Shaped like the paper's Table 1; `compare` False (smoke) prints no ratio and no baseline."""
     ref = domain_reference(sweep.domain)
     one_step = mean_std([r.metric("one_step_mse") for r in rows])[0]
-    rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
-    # the trivial baseline on the same trajectories: a model that does not beat it has learned little dynamics
-    constant_velocity = mean_std([r.metric("baseline_cv_rollout_mse") for r in rows])[0]
-    baseline = "—" if not math.isfinite(constant_velocity) else f"{fmt(constant_velocity)} ({against_cv(rows)})"
+    rollout, _, seeds = mean_std([r.metric("rollout_mse") for r in rows])
     stopped = any(r.metric("rollout_stopped") > 0 for r in rows)  # NaN for runs that did not finish
-    cells = [ref.name if ref else sweep.domain, ref.simulator if ref else "—", str(ref.dim) if ref else "—",
-             f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
-             fmt(one_step), fmt(ref.one_step_mse) if ref else "—", ratio(one_step, ref.one_step_mse if ref else None),
-             fmt(rollout), fmt(ref.rollout_mse) if ref else "—",
-             ratio(rollout, ref.rollout_mse if ref else None) + (" (stopped rollouts)" if stopped and ref else ""),
-             baseline,
-             fmt(ref.cconv_rollout_mse) if ref and ref.cconv_rollout_mse else "—",
-             *(fmt(mean_std([r.metric(m) for r in rows])[0]) for m in ("ot", "mmd", "kinetic_energy_error")),
-             budget(rows), status_cell(rows), run_ids_cell(rows)]
-    if not any(r.ok for r in rows):
-        cells[5] = cells[8] = MISSING
-    return "| " + " | ".join(cells) + " |"
+    done = any(r.ok for r in rows)
+    return [ref.name if ref else sweep.domain, ref.simulator if ref else "—",
+            f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
+            fmt(one_step) if done else MISSING, fmt(ref.one_step_mse) if ref else "—",
+            ratio(one_step, ref.one_step_mse if ref else None) if compare else "—",
+            fmt(rollout) if done else MISSING, fmt(ref.rollout_mse) if ref else "—",
+            (ratio(rollout, ref.rollout_mse if ref else None) + (" (stopped rollouts)" if stopped and ref else ""))
+            if compare else "—",
+            against_cv(rows) if compare else "—", str(seeds)]
 
 
-def domain_table(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[str]:
-    lines = [DOMAIN_HEADER, "|" + "---|" * DOMAIN_HEADER.count(" | ") + "---|"]
-    lines += [domain_row(sweep, rows) for sweep, rows in collected]
-    return lines
+def distribution_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
+    ref = domain_reference(sweep.domain)
+    return [ref.name if ref else sweep.domain,
+            *(fmt(mean_std([r.metric(m) for r in rows])[0]) for m in ("ot", "mmd", "kinetic_energy_error")),
+            steps_covered(rows)]
+
+
+def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
+    ref = domain_reference(sweep.domain)
+    done = [r for r in rows if r.ok]
+    steps = sorted({int(r.metric("train/final_step")) for r in done if math.isfinite(r.metric("train/final_step"))})
+    wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
+    return [ref.name if ref else sweep.domain, "/".join(f"{s:,}" for s in steps) or "—",
+            "/".join(sorted({used_precision(r) for r in done})) or "—", fmt(wall / 60),
+            "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—",
+            "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})) or "—",
+            status_cell(rows), run_ids_cell(rows)]
+
+
+def domain_tables(collected: list[tuple[SweepSpec, list[RunRow]]], compare: bool) -> list[str]:
+    """The accuracy table (Table 1's shape), then the distributional metrics, then what each row cost."""
+    return ["## Against the paper (Table 1, App. C.4)", "",
+            *_table(ACCURACY_HEADER, [accuracy_row(s, rows, compare) for s, rows in collected]), "",
+            "## Distributional metrics (App. B.4)", "",
+            *_table(DISTRIBUTION_HEADER, [distribution_row(s, rows) for s, rows in collected]), "",
+            "## Budget", "", *_table(BUDGET_HEADER, [budget_row(s, rows) for s, rows in collected]), ""]
 
 
 def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[str]:
@@ -107,7 +132,7 @@ def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[s
 # Ablations (Sec. 5.4, Fig. 4; App. C.1)
 # ----------------------------------------------------------------------------------------------
 
-def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path) -> list[str]:
+def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compare: bool = True) -> list[str]:
     lines = []
     for axis in sweep.axes:
         values = list(dict.fromkeys(r.planned.axes[axis] for r in rows))
@@ -130,9 +155,9 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path) -> lis
             seeds = stats["rollout_mse"][i][2]
             cells = [f"{fmt(stats[m][i][0])} ± {fmt(stats[m][i][1])}" if stats[m][i][2] else MISSING
                      for m, _ in figures.PANELS]
-            cells += [steps_covered(at_value), cv_ratio(at_value) if seeds else MISSING]
+            cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—"]
             lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
-        lines += ["", verdict_line(axis, values, rows, reference), ""]
+        lines += ["", verdict_line(axis, values, rows, reference), ""] if compare else [""]
     return lines
 
 
@@ -192,30 +217,55 @@ def time_section(rows: list[RunRow], out_dir: Path, label=lambda r: r.planned.na
             f"![time against error]({figure.name})", ""]
 
 
-def rollout_section(rows: list[RunRow], out_dir: Path) -> list[str]:
-    """Best and worst test trajectories of the run with the lowest rollout MSE, as PNG and GIF."""
+def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = None) -> tuple[list[str], dict]:
+    """Best and worst test trajectories of the run with the lowest rollout MSE, as PNG and GIF (once when they
+    are the same trajectory). Returns the lines and the picks (run, trajectories, their errors), which the run
+    summary keeps: when the run's rollouts are no longer in MLflow, the committed pictures are shown again."""
     done = sorted((r for r in rows if r.ok and math.isfinite(r.metric("rollout_mse"))),
                   key=lambda r: r.metric("rollout_mse"))
     lines = ["## Rollouts", ""]
     if not done:
-        return lines + ["No finished run with rollouts.", ""]
+        return lines + ["No finished run with rollouts.", ""], {}
     row = done[0]
     with tempfile.TemporaryDirectory() as tmp:
         results = [r for r in load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
                    if r.predicted.shape[0]]
-    if not results:
-        return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""]
-    errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
-              for r in results]
-    lines.append(f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{row.split}': "
-                 "ground truth above / left, GNS below / right.")
-    lines.append("")
-    for label, index in (("best", int(np.argmin(errors))), ("worst", int(np.argmax(errors)))):
-        title = f"{label}: trajectory {index}, rollout MSE {errors[index]:.3g}"
-        png = figures.rollout_png(results[index], out_dir / f"rollout_{label}.png", title)
-        gif = figures.rollout_gif(results[index], out_dir / f"rollout_{label}.gif", title)
-        lines += [f"**{title}**", "", f"![{label} rollout]({png.name})", "", f"![{label} animation]({gif.name})", ""]
-    return lines
+    if results:
+        errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
+                  for r in results]
+        chosen = dict.fromkeys([int(np.argmin(errors)), int(np.argmax(errors))])  # one entry when both agree
+        picks = {"run_id": row.run_id, "split": row.split, "shown": [
+            {"label": "best" if i == 0 else "worst", "trajectory": index, "mse": float(errors[index]),
+             "steps": int(results[index].predicted.shape[0]), "stopped": results[index].stop_reason or ""}
+            for i, index in enumerate(chosen)]}
+        alone = len(picks["shown"]) == 1
+        for shown in picks["shown"]:
+            result, name = results[shown["trajectory"]], shown["label"]
+            figures.rollout_png(result, out_dir / f"rollout_{name}.png", _rollout_title(shown, alone))
+            figures.rollout_gif(result, out_dir / f"rollout_{name}.gif", _rollout_title(shown, alone))
+    elif previous and previous.get("run_id") == row.run_id and all(
+            (out_dir / f"rollout_{s['label']}.png").is_file() for s in previous.get("shown", [])):
+        picks = previous  # the store that held the rollouts is gone; the committed pictures stand
+    else:
+        return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""], {}
+    lines += [f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{picks['split']}': "
+              "ground truth beside the GNS on one frame; the MSE is of moving particles over the steps shown.", ""]
+    for shown in picks["shown"]:
+        name = shown["label"]
+        lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
+                  f"![{name} rollout](rollout_{name}.png)", "", f"![{name} animation](rollout_{name}.gif)", ""]
+    return lines, picks
+
+
+def _rollout_title(shown: dict, alone: bool = False) -> str:
+    label = "best and worst" if alone else shown["label"]
+    stop = f", stopped at step {shown['steps']}: {shown['stopped']}" if shown.get("stopped") else ""
+    return f"{label}: trajectory {shown['trajectory']}, MSE {shown['mse']:.3g} over {shown['steps']} steps{stop}"
+
+
+def previous_picks(summary: Path) -> dict | None:
+    """The rollout pictures the last report showed (its run summary's `extras`), if any."""
+    return read_summary_extras(summary).get("rollouts")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -229,23 +279,25 @@ def _write(out_dir: Path, lines: list[str]) -> Path:
 
 
 def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[RunRow] | None = None) -> Path:
-    """The sweep's report from `rows` (its collected runs; collected here when not given)."""
+    """The sweep's report from `rows` (its collected runs; collected here when not given), and its run summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = collect(sweep, tier, out_dir.parent.parent) if rows is None else rows
-    write_run_summary(out_dir / SUMMARY_FILE, sweep, tier, rows)
-    lines = [f"# {sweep.name} ({tier} tier)", "", f"{sweep.description}. Domain `{sweep.domain}`; paper: "
-             f"{sweep.paper_figure or '—'}. MLflow experiment `{sweep.experiment}`; {len(rows)} planned runs, "
-             f"{sum(r.ok for r in rows)} finished.", "", budget_statement(rows), ""]
+    compare = tier != "smoke"
+    lines = [f"# {sweep.name} ({tier} tier)", "", budget_statement(rows, tier), "",
+             f"{sweep.description}. Domain `{sweep.domain}`; paper: {sweep.paper_figure or '—'}. MLflow experiment "
+             f"`{sweep.experiment}`; {len(rows)} planned runs, {sum(r.ok for r in rows)} finished.", "",
+             *definitions_section()]
     if sweep.kind == "stress":
         lines += sweep_section(sweep, rows, out_dir)
     elif sweep.kind == "domain":
-        lines += ["## Against the paper (App. C.4)", "", *domain_table([(sweep, rows)]), ""]
+        lines += domain_tables([(sweep, rows)], compare)
     elif sweep.candidates:
-        lines += candidates_section(sweep, tier, rows, out_dir)
+        lines += candidates_section(sweep, tier, rows, out_dir, compare)
     else:
-        lines += ablation_section(sweep, rows, out_dir)
-    lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir),
-              *rollout_section(rows, out_dir)]
+        lines += ablation_section(sweep, rows, out_dir, compare)
+    rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir / SUMMARY_FILE))
+    lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir), *rollouts]
+    write_run_summary(out_dir / SUMMARY_FILE, sweep, tier, rows, {"rollouts": picks} if picks else None)
     return _write(out_dir, lines)
 
 
@@ -254,14 +306,13 @@ def write_domains_report(sweeps: list[SweepSpec], tier: str, out_dir: Path) -> P
     out_dir.mkdir(parents=True, exist_ok=True)
     collected = [(s, collect(s, tier, out_dir.parent.parent)) for s in sweeps]
     every = [r for _, rows in collected for r in rows]
-    lines = [f"# Domains ({tier} tier)", "",
-             "The paper's results on its 16 domains (Table 1, App. C.4) "
-             "with our numbers beside them: mean over seeds of the test-split metrics, MSEs absolute (not "
-             "x1e-9 / x1e-3); ratio = ours / paper. CConv: the paper's best CConv baseline (Sec. 5.5 and "
-             "App. D.1, approximate). Each row states its budget. Per-domain runs "
-             f"and rollouts: `reports/domain-<id>/{tier}/` (`gns-bench report domain-<id> --tier {tier}`).", "",
-             budget_statement(every), "", *domain_table(collected), "", *inference_section(collected), "",
-             *time_section(every, out_dir, label=lambda r: r.planned.sweep.removeprefix("domain-"))]
+    filled = sum(any(r.ok for r in rows) for _, rows in collected)
+    lines = [f"# Domains ({tier} tier)", "", budget_statement(every, tier), "",
+             f"The paper's 16 domains (Table 1, App. C.4), {filled} of {len(collected)} with a finished run, our "
+             "numbers beside the paper's: means over seeds of the test-split metrics, MSEs absolute (not x1e-9 / "
+             "x1e-3); ratio = ours / paper. Per-domain runs, time against error and rollouts: "
+             f"`reports/domain-<id>/{tier}/` (`gns-bench report domain-<id> --tier {tier}`).", "",
+             *definitions_section(), *domain_tables(collected, tier != "smoke"), *inference_section(collected)]
     return _write(out_dir, lines)
 
 
@@ -272,6 +323,8 @@ def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Pa
     across all domain sweeps, or `stability` for the stress sweeps' report (`write_all_reports` writes them all).
     """
     reports_root = Path(reports_root)
+    if str(sweep) == "index":
+        return write_index(reports_root)
     if str(sweep) == "domains":
         return write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier)
     if str(sweep) == "stability":
@@ -292,4 +345,5 @@ def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
             written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
     written.append(write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier))
     written.append(write_stability_report(tier, reports_root / "stability" / tier))
+    written.append(write_index(reports_root))
     return written

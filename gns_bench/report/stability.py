@@ -220,6 +220,7 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
     sweeps = stress_sweeps() if sweeps is None else sweeps
     collected = [(s, collect(s, tier, out_dir.parent.parent)) for s in sweeps]
     lines = [f"# Stability and generalisation ({tier} tier)", "",
+             budget_statement([r for _, rows in collected for r in rows], tier), "",
              "The paper's stability and generalisation claims (Sec. 5.3) and failure "
              "modes (App. C.7), each a stress sweep in "
              "`sweeps/stress/` run with `nox -s <sweep> -- <tier>`. Tests: `horizon` (rollouts longer than "
@@ -241,7 +242,7 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
                          f"{budget([row])} | `{row.run_id}` |")
     lines += [""]
     for sweep, rows in collected:
-        lines += sweep_section(sweep, rows, out_dir, statement=True)
+        lines += sweep_section(sweep, rows, out_dir)
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -74,7 +74,8 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
         cells = [f"`{name}`", str(seeds) if done else MISSING, fmt(steps), fmt(seconds),
                  fmt(seconds / steps) if steps else "—", fmt(mean("one_step_mse")),
                  fmt(rollout) + (f" ± {fmt(rollout_std)}" if seeds > 1 else ""),
-                 f"{rollout / cv:.2g}x" if cv > 0 else "—", f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
+                 f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
+                 f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
                  f"{mean('rollout_stopped'):.0%}" if done else "—",
                  "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—", run_ids_cell(group)]
         lines.append("| " + " | ".join(cells) + " |")
@@ -111,8 +112,9 @@ def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: in
     return path
 
 
-def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir: Path) -> list[str]:
-    """The study's table, its error-against-time figure and its winner."""
+def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir: Path,
+                       compare: bool = True) -> list[str]:
+    """The study's table, its error-against-time figure and (`compare`: not at the smoke tier) its winner."""
     groups = by_candidate(sweep, rows)
     plan = rows[0].planned if rows else None
     tested_on = f"`{plan.domain}-{plan.evaluated_on}`" if plan else "—"
@@ -123,13 +125,13 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
              "one-step and rollout MSE (the release's definitions), the rollout MSE against constant-velocity "
              "extrapolation over the same steps, the MSE over the first 10 and 100 steps, and the share of rollouts "
              "a health monitor stopped. Training time is the sum of step times (`train/wall_time_s`: stalls "
-             "clipped, evaluation excluded).", "", *candidates_table(groups), "", f"**Winner.** {sentence}", ""]
+             "clipped, evaluation excluded).", "", *candidates_table(groups), ""]
+    if compare:
+        lines += [f"**Winner.** {sentence}", ""]
     figure = curves_figure(groups, out_dir / "error_vs_time.png", rollout_steps)
     if figure is not None:
         lines += ["## Error against training time", "",
                   f"Each run evaluated along the way on the first `train.eval_trajectories` validation trajectories "
                   f"(rolled out {rollout_steps} steps), against its training time so far; dashed: further seeds.", "",
                   f"![error against training time]({figure.name})", ""]
-    if best:
-        lines += [f"Winner: `{best}`.", ""]
     return lines

@@ -18,10 +18,11 @@ from PIL import Image
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.report import write_all_reports, write_report
+from gns_bench.report.cells import budget_statement, cv_ratio
 from gns_bench.report.collect import collect, domain_sweeps, load_rollouts
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
-from gns_bench.report.report import write_domains_report
+from gns_bench.report.report import accuracy_row, write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
@@ -31,7 +32,8 @@ ABLATION = ('description = "noise std on tiny"\ndomain = "tiny"\npaper_figure = 
             '"train.noise_std" = [0.0, 3e-4, 1e-3]\n')
 ABLATION_TIER = '\n[tiers.smoke]\nseeds = [0, 1]\ngrid = { "train.noise_std" = [0.0, 3e-4] }\n'
 MAX_FIGURE_BYTES = 400_000
-DOMAIN_CELLS = 19  # columns of the domain table (the paper's Table 1)
+ACCURACY_CELLS = 12  # columns of the accuracy table (shaped like the paper's Table 1)
+BUDGET_CELLS = 8  # columns of the budget table
 
 
 @pytest.fixture(scope="module")
@@ -72,10 +74,10 @@ def check_figures(readme: Path, expected: set[str]) -> None:
                 assert gif.format == "GIF" and gif.n_frames > 1
 
 
-def table_rows(text: str, first_cell: str, min_cells: int = 0) -> list[list[str]]:
+def table_rows(text: str, first_cell: str, min_cells: int = 0, exact: bool = False) -> list[list[str]]:
     rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in text.splitlines()
             if line.startswith(f"| {first_cell} ")]
-    return [r for r in rows if len(r) >= min_cells]
+    return [r for r in rows if (len(r) == min_cells if exact else len(r) >= min_cells)]
 
 
 def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
@@ -83,18 +85,26 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
     readme = write_report(swept["domain"], "smoke", tmp_path)
     assert readme == tmp_path / "domain-tiny" / "smoke" / "README.md"
     text = readme.read_text()
+    assert text.splitlines()[2].startswith("**Smoke tier: a pipeline check, not a result.**")  # said first
     (run,) = [r for r in tracking.search_sweep_runs(sweep.experiment, "smoke")]
-    (row,) = table_rows(text, "tiny", DOMAIN_CELLS)
-    assert row[-1] == f"`{run.run_id}`" and row[-2] == "ok"
-    assert float(row[8]) == pytest.approx(run.metrics["test/rollout_mse"], rel=1e-2)
-    cv = run.metrics["test/baseline_cv_rollout_mse"]
-    assert row[11] == f"{cv:.3g} ({run.metrics['test/rollout_mse'] / cv:.3g}x)"  # constant velocity, GNS / it
-    assert float(row[13]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
-    assert "20 steps" in row[16] and "data tier smoke" in row[16]
-    assert f"final learning rate {run.metrics['learning_rate']:.3g}" in row[16]  # where the schedule stood
-    assert "far below the paper's budget" in text and "20,000,000" in text
-    assert "The ground truth comes from gns-bench's own solvers" in text  # the tiny dataset is generated here
-    assert "rollouts of 10 steps" in row[16] and "`eval.rollout_steps` = 10 steps" in text
+    (accuracy,) = table_rows(text, "tiny", ACCURACY_CELLS, exact=True)
+    assert float(accuracy[7]) == pytest.approx(run.metrics["test/rollout_mse"], rel=1e-2)
+    assert accuracy[6] == accuracy[9] == accuracy[10] == "—" and accuracy[11] == "1"  # smoke: no comparison
+    (distribution,) = table_rows(text, "tiny", 5, exact=True)
+    assert float(distribution[1]) == pytest.approx(run.metrics["test/ot"], rel=1e-2)  # OT column from MLflow
+    (budget,) = table_rows(text, "tiny", BUDGET_CELLS, exact=True)
+    assert budget == ["tiny", "20", "fp32", budget[3], budget[4], "smoke", "ok", f"`{run.run_id}`"]
+    for term in ("one-step MSE", "rollout MSE", "GNS / constant velocity", "OT", "MMD", "KE error"):
+        assert f"- **{term}**:" in text  # every metric shown is defined where the report starts
+    # Compared (any tier but smoke): the ratio beside the two numbers it divides, the baseline over the same steps
+    rows = collect(sweep, "smoke")
+    cv = run.metrics["test/baseline_cv_same_steps_mse"]
+    rollout = run.metrics["test/rollout_mse"]
+    assert accuracy_row(sweep, rows, compare=True)[10] == f"{rollout / cv:.3g}x ({rollout:.3g} / {cv:.3g})"
+    statement = budget_statement(rows, "small")
+    assert "far below the paper's budget" in statement and "20,000,000" in statement
+    assert "The ground truth comes from gns-bench's own solvers" in statement  # the tiny dataset is made here
+    assert "`eval.rollout_steps` = 10 steps" in statement
     check_figures(readme, {"time_vs_error.png", "rollout_best.png", "rollout_best.gif", "rollout_worst.png",
                            "rollout_worst.gif"})
 
@@ -107,15 +117,16 @@ def test_ablation_sweep_report_marks_missing_values(swept: dict[str, Path], tmp_
     assert "Paper default: 0.0003" in text
     rows = {r[0]: r for r in table_rows(text, "0") + table_rows(text, "0.0003") + table_rows(text, "0.001")}
     assert rows["0"][1] == "2/2" and rows["0.0003"][1] == "2/2" and rows["0.001"][1] == "0/2"
-    assert all(cell == "**missing**" for cell in rows["0.001"][2:])
+    assert all(cell == "**missing**" for cell in rows["0.001"][2:7]) and rows["0.001"][7] == "—"
     assert all("±" in cell for cell in rows["0"][2:6])
     # Whole 10-step rollouts (nothing stopped), and the GNS against constant velocity over them.
     row_runs = [r for r in collect(load_sweep(path), "smoke") if r.planned.axes["train.noise_std"] == 0.0]
     assert len(row_runs) == 2
-    assert rows["0"][6] == "10"
-    expected = np.mean([r.metric("rollout_mse") for r in row_runs]) / np.mean(
-        [r.metric("baseline_cv_rollout_mse") for r in row_runs])
-    assert rows["0"][7] == f"{expected:.3g}x"
+    assert rows["0"][6] == "10" and rows["0"][7] == "—"  # smoke: no comparison printed
+    gns = np.mean([r.metric("rollout_mse") for r in row_runs])
+    cv = np.mean([r.metric("baseline_cv_same_steps_mse") for r in row_runs])
+    assert cv_ratio(row_runs) == f"{gns / cv:.3g}x ({gns:.3g} / {cv:.3g})"
+    assert "Verdict" not in text  # nor a verdict on the paper's finding
     assert "cover different steps" not in text
     runs = tracking.search_sweep_runs("sweep:ablation-noise_std", "smoke")
     assert len(runs) == 4 and all(f"`{r.run_id}`" in text for r in runs)
@@ -139,18 +150,20 @@ def test_domains_aggregate_keeps_missing_domains(swept: dict[str, Path], tmp_pat
     goop = next(s for s in domain_sweeps() if s.name == "domain-goop")
     readme = write_domains_report([load_sweep(swept["domain"]), goop], "smoke", tmp_path)
     text = readme.read_text()
-    (tiny,) = table_rows(text, "tiny", DOMAIN_CELLS)
-    (goop_row,) = table_rows(text, "GOOP", DOMAIN_CELLS)
-    assert tiny[-2] == "ok" and goop_row[-2] == "**missing**" and goop_row[-1] == "—"
-    assert goop_row[5] == "**missing**" and goop_row[6] == "2.91e-09" and goop_row[9] == "0.00189"
-    assert goop_row[11] == "—" and goop_row[12] == "0.0055"  # no run, so no baseline; CConv (Sec. 5.5)
-    check_figures(readme, {"time_vs_error.png"})
+    (tiny,) = table_rows(text, "tiny", BUDGET_CELLS, exact=True)
+    (goop_budget,) = table_rows(text, "GOOP", BUDGET_CELLS, exact=True)
+    assert tiny[-2] == "ok" and goop_budget[-2] == "**missing**" and goop_budget[-1] == "—"
+    (goop_row,) = table_rows(text, "GOOP", ACCURACY_CELLS, exact=True)
+    assert goop_row[4] == "**missing**" and goop_row[5] == "2.91e-09" and goop_row[8] == "0.00189"
+    assert goop_row[10] == "—" and goop_row[11] == "0"  # no run, so no baseline and no seed
+    assert "1 of 2 with a finished run" in text
+    assert "time_vs_error.png" not in text  # no time-against-error front across domains
 
     every = write_report("domains", "smoke", tmp_path / "all").read_text()
     names = [domain_reference(s.domain).name for s in domain_sweeps()]
     assert len(names) == 16
     for name in names:
-        (row,) = table_rows(every, name, DOMAIN_CELLS)
+        (row,) = table_rows(every, name, BUDGET_CELLS, exact=True)
         assert row[-2] == "**missing**"
 
 
@@ -166,12 +179,12 @@ def test_cli_report_and_unknown_sweep(swept: dict[str, Path], tmp_path: Path) ->
 def test_all_reports_cover_the_sweeps_with_runs(swept: dict[str, Path], tmp_path: Path) -> None:
     written = write_all_reports("smoke", tmp_path, sweeps_dir=swept["root"] / "sweeps")
     assert [p.relative_to(tmp_path).parts[0] for p in written] == [
-        "ablation-noise_std", "domain-tiny", "domains", "stability"]
+        "ablation-noise_std", "domain-tiny", "domains", "stability", "README.md"]  # the front page last
     assert all(p.name == "README.md" and p.stat().st_size > 0 for p in written)
     # At a tier with no runs only the two overviews are written, their rows all marked missing.
     small = tmp_path / "small"
     assert main(["report", "all", "--tier", "small", "--reports-root", str(small)]) == 0
-    assert sorted(p.name for p in small.iterdir()) == ["domains", "stability"]
+    assert sorted(p.name for p in small.iterdir()) == ["README.md", "domains", "stability"]
 
 
 def test_pareto_front_and_references() -> None:
@@ -242,7 +255,9 @@ def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
     assert "health monitor" not in budget_statement([row("bbb", 0.0)])
 
 
-def test_budget_statement_compares_with_constant_velocity() -> None:
+def test_the_baseline_printed_is_the_one_divided_by() -> None:
+    """A ratio is printed beside the two numbers it divides; a stopped rollout is compared with constant
+    velocity over the same steps or not at all."""
     from gns_bench.report.cells import budget_statement
     from gns_bench.report.collect import RunRow
 
@@ -251,34 +266,22 @@ def test_budget_statement_compares_with_constant_velocity() -> None:
     def row(rollout: float, constant_velocity: float, stopped: float = 0.0,
             same_steps: float | None = None) -> RunRow:
         metrics = {"test/rollout_mse": rollout, "test/baseline_cv_rollout_mse": constant_velocity,
-                   "test/rollout_stopped": stopped}
+                   "test/rollout_stopped": stopped, "train/final_step": 20.0, "train/wall_time_s": 60.0}
         if same_steps is not None:
             metrics["test/baseline_cv_same_steps_mse"] = same_steps
         return RunRow(planned, tracking.RunRecord("r", planned.name, "FINISHED", 0, {"train.steps": "20"}, metrics))
 
-    assert "rollout MSE is 0.25x to 1.5x that of a constant-velocity" in budget_statement([row(1.0, 4.0),
-                                                                                           row(3.0, 2.0)])
-    assert "rollout MSE is 0.5x that of" in budget_statement([row(1.0, 2.0)])
-    assert "constant-velocity" not in budget_statement([row(1.0, 0.0)])  # no baseline logged
-    assert "own solvers" not in budget_statement([row(1.0, 2.0)])  # no dataset tier: an imported dataset
-    # A stopped rollout's MSE covers fewer steps than the baseline's whole horizon: no comparison, unless
-    # the baseline over the same steps was logged
-    assert "constant-velocity" not in budget_statement([row(1.0, 4.0, stopped=0.2)])
-    text = budget_statement([row(1.0, 4.0, stopped=0.2), row(1.0, 2.0)])
-    assert "is 0.5x that of" in text and "left out: 1 run(s) with stopped rollouts" in text
-    text = budget_statement([row(1.0, 4.0, stopped=0.2, same_steps=0.5), row(1.0, 2.0)])
-    assert "is 0.5x to 2x that of" in text and "left out" not in text
-
-    from gns_bench.report.report import domain_row
-
     goop = load_sweep(SWEEPS_DIR / "domains" / "goop.toml")
-    assert "| 4 (0.25x) |" in domain_row(goop, [row(1.0, 4.0)])
-    assert "| 4 (GNS rollouts stopped) |" in domain_row(goop, [row(1.0, 4.0, stopped=0.2)])
-    # the ratio takes both MSEs from the runs that rolled out whole; the value is every run's baseline
-    assert "| 5 (0.5x) |" in domain_row(goop, [row(1.0, 2.0), row(9.0, 8.0, stopped=0.2)])
-    # with the baseline over the steps before the stop, stopped runs compare too; the paper ratio is marked
-    stopped = domain_row(goop, [row(1.0, 4.0, stopped=0.2, same_steps=0.5)])
-    assert "| 4 (2x over the steps before the stops) |" in stopped and "x (stopped rollouts) |" in stopped
+    assert accuracy_row(goop, [row(1.0, 4.0)], True)[10] == "0.25x (1 / 4)"
+    assert accuracy_row(goop, [row(1.0, 4.0, stopped=0.2)], True)[10] == "GNS rollouts stopped"
+    # the ratio takes both MSEs from the runs whose baseline covers their own steps
+    assert accuracy_row(goop, [row(1.0, 2.0), row(9.0, 8.0, stopped=0.2)], True)[10] == "0.5x (1 / 2)"
+    stopped = accuracy_row(goop, [row(1.0, 4.0, stopped=0.2, same_steps=0.5)], True)
+    assert stopped[10] == "2x (1 / 0.5), over the steps before the stops" and stopped[9].endswith("(stopped rollouts)")
+    text = budget_statement([row(1.0, 4.0, stopped=0.2, same_steps=0.5), row(1.0, 2.0)], "small")
+    assert "20 training steps" in text and "h of training in all" in text and "same steps" in text
+    assert "own solvers" not in text  # no dataset tier: an imported dataset
+    assert budget_statement([row(1.0, 2.0)], "smoke").startswith("**Smoke tier: a pipeline check")
 
 
 def test_ablation_table_compares_stopped_runs_with_constant_velocity_over_their_own_steps(tmp_path: Path) -> None:
@@ -298,6 +301,6 @@ def test_ablation_table_compares_stopped_runs_with_constant_velocity_over_their_
     text = "\n".join(ablation_section(sweep, [row(0.0, 0.1, 0.05, 40, 0.8), row(3e-4, 0.3, 0.6, 100, 0.0)],
                                       tmp_path))
     rows = {r[0]: r for r in table_rows(text, "0") + table_rows(text, "0.0003")}
-    assert rows["0"][6:] == ["40 (80% stopped)", "2x"]
-    assert rows["0.0003"][6:] == ["100", "0.5x"]
+    assert rows["0"][6:] == ["40 (80% stopped)", "2x (0.1 / 0.05)"]
+    assert rows["0.0003"][6:] == ["100", "0.5x (0.3 / 0.6)"]
     assert "cover different steps" in text

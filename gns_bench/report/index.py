@@ -1,0 +1,179 @@
+"""The front page, `reports/README.md`: one row per claim of the paper, where gns-bench stands on it.
+
+Written by `gns-bench report index` (and at the end of `report all`) from the committed run summaries beside
+each report (`runs.json`) and MLflow where it still holds the runs, so it is rebuilt the same way on any
+machine. Each claim is shown at the most thorough tier that has a finished run (paper, cpu, small; smoke runs
+only check the pipeline and are never shown as results), with our figure, the paper's, and a verdict computed
+from the numbers, each linking to the report that holds the detail.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from gns_bench.config import TIERS
+from gns_bench.report.cells import comparable_cv, fmt
+from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
+from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
+from gns_bench.report.verdict import judge
+from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
+
+RESULT_TIERS = [t for t in reversed(TIERS) if t != "smoke"]  # most thorough first: what a claim is shown at
+MAJOR_AXES = ("message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
+              "position_encoding", "noise_correction")  # Sec. 5.4 and Fig. 4; the others are App. C.1's
+GENERALISATION = (  # (stress sweep, the paper's claim)
+    ("stress-waterramps", "WATERRAMPS: generalises to an arena with inflow, far larger than training (Sec. 5.3)"),
+    ("stress-continuous", "CONTINUOUS: interpolates friction angles held out of training (Sec. 5.3, App. C.5)"),
+    ("stress-multimaterial", "MULTIMATERIAL: handles unseen shapes (Sec. 5.2)"),
+    ("stress-boxbath", "BOXBATH: stays stable over rollouts far longer than training (Sec. 5.3, App. C.7)"),
+)
+HEADER = "| claim (paper) | tier | ours | paper | verdict | report |"
+
+
+def _finished(rows: list[RunRow]) -> bool:
+    return any(r.ok for r in rows)
+
+
+def best_tier(sweep: SweepSpec, reports_root: Path) -> tuple[str, list[RunRow]]:
+    """The most thorough tier at which the sweep has a finished run, and its rows ("" when none)."""
+    for tier in RESULT_TIERS:
+        rows = collect(sweep, tier, reports_root)
+        if _finished(rows):
+            return tier, rows
+    return "", []
+
+
+def _link(sweep: str, tier: str) -> str:
+    return f"[{sweep}/{tier}]({sweep}/{tier}/README.md)" if tier else "—"
+
+
+def domain_claim(reports_root: Path) -> list[str]:
+    """Table 1: how many domains have a result, how their rollout MSE compares with the paper's, and with
+    constant velocity on the same steps."""
+    rows_by_domain = [(s, *best_tier(s, reports_root)) for s in domain_sweeps()]
+    done = [(s, tier, rows) for s, tier, rows in rows_by_domain if tier]
+    tiers = sorted({tier for _, tier, _ in done}, key=RESULT_TIERS.index)
+    ratios, beats = [], 0
+    for sweep, _, rows in done:
+        ref = domain_reference(sweep.domain)
+        rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
+        if ref and math.isfinite(rollout):
+            ratios.append(rollout / ref.rollout_mse)
+        against = [r.metric("rollout_mse") / comparable_cv(r) for r in rows if comparable_cv(r) > 0]
+        beats += bool(against) and float(np.mean(against)) < 1
+    ours = f"{len(done)} of 16 domains" + (f"; rollout MSE {fmt(min(ratios))}x-{fmt(max(ratios))}x the paper's "
+                                            f"(median {fmt(float(np.median(ratios)))}x)" if ratios else "")
+    verdict = (f"GNS beats constant velocity on {beats} of {len(done)}" if done else "no result yet")
+    link = "/".join(tiers)
+    papers = [ref.rollout_mse for ref in (domain_reference(s.domain) for s in domain_sweeps()) if ref]
+    return [f"| One-step and rollout MSE on 16 domains (Table 1, App. C.4) | {link or '—'} | {ours} | "
+            f"{len(papers)} domains, rollout MSE {fmt(min(papers))} to {fmt(max(papers))} | {verdict} | "
+            f"{', '.join(_link('domains', t) for t in tiers) or '—'} |"]
+
+
+def ablation_claims(reports_root: Path) -> list[str]:
+    lines = []
+    sweeps = {s.name.removeprefix("ablation-"): s for s in (load_sweep(p) for p in discover_sweeps())
+              if s.kind == "ablation"}
+    for name in sorted(sweeps, key=lambda n: (n not in MAJOR_AXES, MAJOR_AXES.index(n) if n in MAJOR_AXES else n)):
+        sweep = sweeps[name]
+        (axis,) = sweep.axes
+        reference = ablation_reference(axis)
+        tier, rows = best_tier(sweep, reports_root)
+        kind = "Fig. 4, Sec. 5.4" if name in MAJOR_AXES else "App. C.1"
+        if not tier:
+            lines.append(f"| {axis} ({kind}) | — | no result yet | {reference.get('summary', '—')} | — | — |")
+            continue
+        values = list(dict.fromkeys(r.planned.axes[axis] for r in rows))
+        errors = {v: [r.metric("rollout_mse") / comparable_cv(r) for r in rows
+                      if r.planned.axes[axis] == v and comparable_cv(r) > 0] for v in values}
+        outcome = judge(errors, reference)
+        finished = sum(r.ok for r in rows)
+        lines.append(f"| {axis} ({kind}) | {tier} | {finished} of {len(rows)} runs: {outcome.detail} | "
+                     f"{reference.get('summary', '—')} | {outcome.verdict} | {_link(sweep.name, tier)} |")
+    return lines
+
+
+def generalisation_claims(reports_root: Path) -> list[str]:
+    sweeps = {s.name: s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "stress"}
+    lines = []
+    for name, claim in GENERALISATION:
+        sweep = sweeps.get(name)
+        tier, rows = best_tier(sweep, reports_root) if sweep else ("", [])
+        done = [r for r in rows if r.ok]
+        if not done:
+            lines.append(f"| {claim} | — | no result yet | see the paper | — | — |")
+            continue
+        row = done[0]
+        horizon = row.metric("stress/horizon/stable_factor")
+        against = row.metric("rollout_mse") / comparable_cv(row) if comparable_cv(row) > 0 else math.nan
+        ours = (f"test rollout MSE {fmt(row.metric('rollout_mse'))} ({fmt(against)}x constant velocity)"
+                + (f"; stable for {fmt(horizon)}x the training length" if math.isfinite(horizon) else ""))
+        lines.append(f"| {claim} | {tier} | {ours} | qualitative (videos) | see the report | "
+                     f"{_link('stability', tier)} |")
+    return lines
+
+
+def inference_claim(reports_root: Path) -> list[str]:
+    """App. C.6: our rollout time per step against the paper's V100 range for 2D MPM domains."""
+    seconds, hardware, tier_seen = [], set(), set()
+    for sweep in domain_sweeps():
+        ref = domain_reference(sweep.domain)
+        if not ref or ref.dim != 2:
+            continue
+        tier, rows = best_tier(sweep, reports_root)
+        for r in rows:
+            if r.ok and math.isfinite(r.metric("rollout_seconds_per_step")):
+                seconds.append(r.metric("rollout_seconds_per_step"))
+                hardware.add(r.tag("hardware", "?"))
+                tier_seen.add(tier)
+    paper = inference_reference(2, "MPM (2D)")
+    paper_cell = f"{paper['gns_seconds'][0]:g}-{paper['gns_seconds'][1]:g} s/step on a V100" if paper else "—"
+    ours = (f"{fmt(min(seconds))}-{fmt(max(seconds))} s/step on {'; '.join(sorted(hardware))}" if seconds
+            else "no result yet")
+    tiers = sorted(tier_seen, key=RESULT_TIERS.index)
+    return [f"| Rollout time per step, 2D domains (App. C.6) | {'/'.join(tiers) or '—'} | {ours} | {paper_cell} | "
+            f"— (other hardware) | {', '.join(_link('domains', t) for t in tiers) or '—'} |"]
+
+
+def bench_claims(reports_root: Path) -> list[str]:
+    """gns-bench's own speed targets, from the committed benchmark (`gns-bench bench`)."""
+    path = reports_root / "bench" / "bench.json"
+    if not path.is_file():
+        return ["| Speed targets (`gns-bench bench`) | — | no benchmark yet | — | — | — |"]
+    from gns_bench.bench.report import targets
+
+    results = json.loads(path.read_text())
+    hardware = results.get("environment", {}).get("hardware", "?")
+    return [f"| {t['target']} (gns-bench's own target) | bench | {t['measured']} ({hardware}) | — | "
+            f"{'met' if t['met'] else 'not met'} | [bench](bench/README.md) |" for t in targets(results)]
+
+
+def write_index(reports_root: Path = Path("reports"), out: Path | None = None) -> Path:
+    """`reports_root/README.md` (or `out`): where gns-bench stands on each claim of the paper."""
+    lines = ["# gns-bench against the paper", "",
+             "Where this suite stands on each claim of *Learning to Simulate Complex Physics with Graph Networks* "
+             "(Sanchez-Gonzalez et al., ICML 2020). Each row is shown at the most thorough tier with a finished run "
+             "(`paper`: the paper's budget; `cpu`: the protocol for 2-core CPUs, chosen by "
+             "[study-cpu_budget](study-cpu_budget/); `small`: the earlier CPU protocol); smoke runs only check "
+             "the pipeline. Verdicts are computed from the numbers (`gns_bench/report/verdict.py`); every row "
+             "links to the report with its budget, its metrics' definitions and its runs. Generated by "
+             "`gns-bench report index` from the run summaries committed beside each report; "
+             "[NOTES.md](NOTES.md) keeps what earlier sessions learned.", "",
+             "## Accuracy across domains", "", HEADER, "|---|---|---|---|---|---|", *domain_claim(reports_root), "",
+             "## Ablations (major axes first)", "", HEADER, "|---|---|---|---|---|---|",
+             *ablation_claims(reports_root), "",
+             "## Generalisation and stability", "", HEADER, "|---|---|---|---|---|---|",
+             *generalisation_claims(reports_root), "",
+             "## Baselines (Sec. 5.5, App. D)", "", HEADER, "|---|---|---|---|---|---|",
+             "| GNS beats CConv on six domains and DPI keeps BOXBATH's cube rigid only with a hard constraint | — | "
+             "not built yet (issue #21) | GNS 2-4x lower rollout MSE than CConv | — | — |", "",
+             "## Speed", "", HEADER, "|---|---|---|---|---|---|", *inference_claim(reports_root),
+             *bench_claims(reports_root), ""]
+    path = out or reports_root / "README.md"
+    path.write_text("\n".join(lines).rstrip() + "\n")
+    return path

@@ -1,0 +1,40 @@
+"""Experiments gns-bench makes or reuses say they are model training, so MLflow 3's UI shows runs, not GenAI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from gns_bench import tracking
+
+KIND = {"mlflow.experimentKind": "custom_model_development"}
+
+
+@pytest.fixture
+def client(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> MlflowClient:
+    uri = f"sqlite:///{tmp_path / 'm.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return MlflowClient(tracking_uri=uri)
+
+
+def test_a_new_experiment_is_tagged_as_model_training(client: MlflowClient) -> None:
+    with tracking.start_run("fresh", "r0") as run:
+        run.log_metrics({"loss": 1.0}, step=0)
+    experiment = client.get_experiment_by_name("fresh")
+    assert KIND.items() <= experiment.tags.items()
+    assert client.get_run(run.run_id).info.experiment_id == experiment.experiment_id
+
+
+def test_a_reused_experiment_without_a_kind_gets_it(client: MlflowClient) -> None:
+    old = client.create_experiment("older")  # made before gns-bench tagged its experiments, or by other code
+    assert "mlflow.experimentKind" not in client.get_experiment(old).tags
+    assert tracking.experiment_id("older") == old
+    assert KIND.items() <= client.get_experiment(old).tags.items()
+
+
+def test_a_reused_experiment_keeps_the_kind_it_has(client: MlflowClient) -> None:
+    chosen = client.create_experiment("chosen", tags={"mlflow.experimentKind": "genai_development"})
+    assert tracking.experiment_id("chosen") == chosen
+    assert client.get_experiment(chosen).tags["mlflow.experimentKind"] == "genai_development"
