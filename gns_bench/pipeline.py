@@ -140,6 +140,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         run.log_metrics({"train/steps_per_second": result.steps_per_second,
                          "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s,
                          "train/curve_eval_seconds": result.eval_seconds})
+        if result.oversubscribed:  # another job competed for the cores: these timings are not comparable
+            run.set_tags({"train/oversubscribed": result.oversubscribed})
         if result.speed is not None:  # what "auto" chose, or the config's own settings
             run.set_tags({"train/precision_used": result.speed.precision,
                           "train/compile_used": str(result.speed.compile),

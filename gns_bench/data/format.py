@@ -35,6 +35,7 @@ OPTIONAL_FIELDS = ("step_context", "birth_step")
 # predicted, noised or in the loss.
 NUM_PARTICLE_TYPES = 9
 KINEMATIC_PARTICLE_TYPE = 3
+RIGID_PARTICLE_TYPE = 0  # a rigid body's particles (BOXBATH's cube): reports measure its rigidity
 PARTICLE_TYPE_NAMES = {3: "kinematic", 5: "water", 6: "sand", 7: "goop", 0: "rigid"}
 # One colour per particle type for every picture gns-bench draws (datasets, rollouts, reports).
 PARTICLE_TYPE_COLOURS = {5: "#2b7bba", 6: "#d9a441", 7: "#b0378f", 3: "#555555", 0: "#d62728"}

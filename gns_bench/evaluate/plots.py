@@ -27,7 +27,7 @@ AXIS_NAMES = "xyz"
 
 # Units on every axis. Positions are in the dataset's coordinates, where the box spans about [0, 1].
 POSITION_UNIT = "box units"
-MSE_UNIT = "position units²"
+MSE_UNIT = "box units²"
 STEP_LABEL = "rollout step"
 GNS_LINE, TRUTH_LINE = "-", "--"  # in curves over a rollout: the model solid, the ground truth dashed
 STOP_COLOUR, FLAG_COLOUR = "#c0392b", "#e67e22"

@@ -42,6 +42,8 @@ from gns_bench.evaluate.plots import (  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 
 DPI = 80
+RIGIDITY_WORDS = ("the RMS change of the body's pairwise distances since the rollout began, relative to their "
+                  "RMS; GNS solid, ground truth dashed; 0 is perfectly rigid")
 PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot", "optimal transport"),
           ("mmd", "MMD"))
 # y-axis label of each panel: the quantity and its unit (OT is W2^2, squared Euclidean cost; MMD is squared

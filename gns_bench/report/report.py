@@ -12,9 +12,9 @@ import math
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
+from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
+from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import figures
 from gns_bench.report.cells import (
     MISSING,
@@ -228,21 +228,25 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         return lines + ["No finished run with rollouts.", ""], {}
     row = done[0]
     with tempfile.TemporaryDirectory() as tmp:
-        results = [r for r in load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
-                   if r.predicted.shape[0]]
+        loaded = load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
+    results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
     if results:
-        errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
-                  for r in results]
-        chosen = dict.fromkeys([int(np.argmin(errors)), int(np.argmax(errors))])  # one entry when both agree
-        picks = {"run_id": row.run_id, "split": row.split, "shown": [
+        errors = {i: metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
+                  for i, r in results.items()}
+        chosen = dict.fromkeys([min(errors, key=errors.get), max(errors, key=errors.get)])  # one when they agree
+        picks = {"run_id": row.run_id, "split": row.split, "rigidity": False, "shown": [
             {"label": "best" if i == 0 else "worst", "trajectory": index, "mse": float(errors[index]),
              "steps": int(results[index].predicted.shape[0]), "stopped": results[index].stop_reason or ""}
             for i, index in enumerate(chosen)]}
         alone = len(picks["shown"]) == 1
+        flagged = flag_marks(row.tag(f"{row.split}/rollouts_flagged"))
         for shown in picks["shown"]:
             result, name = results[shown["trajectory"]], shown["label"]
-            figures.rollout_png(result, out_dir / f"rollout_{name}.png", _rollout_title(shown, alone))
-            figures.rollout_gif(result, out_dir / f"rollout_{name}.gif", _rollout_title(shown, alone))
+            marks = flagged.get(shown["trajectory"], {})
+            figures.rollout_png(result, out_dir / f"rollout_{name}.png", _rollout_title(shown, alone), marks=marks)
+            figures.rollout_gif(result, out_dir / f"rollout_{name}.gif", _rollout_title(shown, alone), marks=marks)
+        # rigid materials (BOXBATH's cube): how far each body's shape drifts, GNS against ground truth
+        picks["rigidity"] = figures.rigidity_figure(loaded, RIGID_PARTICLE_TYPE, out_dir / "rigidity.png") is not None
     elif previous and previous.get("run_id") == row.run_id and all(
             (out_dir / f"rollout_{s['label']}.png").is_file() for s in previous.get("shown", [])):
         picks = previous  # the store that held the rollouts is gone; the committed pictures stand
@@ -254,6 +258,9 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         name = shown["label"]
         lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
                   f"![{name} rollout](rollout_{name}.png)", "", f"![{name} animation](rollout_{name}.gif)", ""]
+    if picks.get("rigidity"):
+        lines += ["### Rigidity", "", f"Rigid-body drift of every test rollout ({figures.RIGIDITY_WORDS}).", "",
+                  "![rigid-body drift](rigidity.png)", ""]
     return lines, picks
 
 

@@ -17,10 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from gns_bench import tracking
+from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
+from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import figures
 from gns_bench.report.cells import budget, budget_statement, fmt
 from gns_bench.report.collect import RunRow, collect, load_rollouts
+from gns_bench.report.figures import RIGIDITY_WORDS
 from gns_bench.stress.plots import plot_stress
 from gns_bench.stress.result import StressResult
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
@@ -191,11 +194,12 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         prefix = f"generalisation/{variant}/"
         values = {k[len(prefix):]: v for k, v in row.record.metrics.items() if k.startswith(prefix)}
         lines += [f"{level}# generalisation: {variant}", "",
-                  "| rollout MSE | constant velocity | one-step MSE | OT | MMD | rollouts stopped | rollouts flagged "
+                  "| rollout MSE | constant velocity, same steps | one-step MSE | OT | MMD | rollouts stopped "
+                  "| rollouts flagged "
                   "| trajectories |",
                   "|---|---|---|---|---|---|---|---|",
                   "| " + " | ".join(fmt(values.get(k, math.nan)) for k in (
-                      "rollout_mse", "baseline_cv_rollout_mse", "one_step_mse", "ot", "mmd", "rollout_stopped",
+                      "rollout_mse", "baseline_cv_same_steps_mse", "one_step_mse", "ot", "mmd", "rollout_stopped",
                       "rollout_flagged", "num_trajectories")) + " |", ""]
         per_trajectory = _per_trajectory(row, variant, workdir)
         if per_trajectory and all("context" in r for r in per_trajectory):
@@ -203,14 +207,22 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
                                     _held_out(sweep.domain))
             lines += [f"![error against the context]({figure.name})", ""]
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
-        results = [r for r in load_rollouts(row.artifact_run_id, npz, workdir) if r.predicted.shape[0]]
+        loaded = load_rollouts(row.artifact_run_id, npz, workdir)
+        results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
         if results:
-            errors = [metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
-                      for r in results]
-            best = int(np.argmin(errors))
-            title = f"{variant}: trajectory {best}, rollout MSE {errors[best]:.3g}"
-            png = figures.rollout_png(results[best], out_dir / f"{sweep.name}_{variant}.png", title)
-            lines += ["Ground truth and GNS at four steps:", "", f"![{variant}]({png.name})", ""]
+            errors = {i: metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
+                      for i, r in results.items()}
+            best = min(errors, key=errors.get)
+            steps = results[best].predicted.shape[0]
+            title = f"{variant}: trajectory {best}, MSE {errors[best]:.3g} over {steps} steps"
+            marks = flag_marks(row.tag(f"generalisation/{variant}/rollouts_flagged")).get(best, {})
+            png = figures.rollout_png(results[best], out_dir / f"{sweep.name}_{variant}.png", title, marks=marks)
+            lines += ["Ground truth and GNS on one frame:", "", f"![{variant}]({png.name})", ""]
+            rigid = figures.rigidity_figure(list(loaded), RIGID_PARTICLE_TYPE,
+                                            out_dir / f"{sweep.name}_{variant}_rigidity.png")
+            if rigid is not None:
+                lines += [f"Rigid-body drift ({RIGIDITY_WORDS}):", "",
+                          f"![{variant}: rigid-body drift]({rigid.name})", ""]
     return lines
 
 

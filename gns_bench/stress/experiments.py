@@ -18,14 +18,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from gns_bench.data.format import Trajectory
+from gns_bench.data.format import RIGID_PARTICLE_TYPE, Trajectory
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.evaluate import health_monitors, one_step_mse
 from gns_bench.evaluate.rollout import RolloutResult, rollout
 from gns_bench.model.simulator import LearnedSimulator
 from gns_bench.stress.result import StressResult
 
-RIGID_PARTICLE_TYPE = 0  # BOXBATH's rigid cube
 ONE_STEP_WINDOWS = 50  # windows per trajectory for the one-step error of each precision
 
 
@@ -60,15 +59,6 @@ def growth_rate(distance: np.ndarray) -> float:
     return float(np.polyfit(steps[ok], np.log(distance[ok]), 1)[0])
 
 
-def rigidity_drift(positions: np.ndarray, rigid: np.ndarray) -> np.ndarray:
-    """[K] largest relative change of any pairwise distance among the rigid particles since frame 0."""
-    p = positions[:, rigid].astype(np.float64)
-    iu = np.triu_indices(p.shape[1], 1)
-    rest = np.linalg.norm(p[0][:, None] - p[0][None], axis=-1)[iu]
-    drift = [np.max(np.abs(np.linalg.norm(q[:, None] - q[None], axis=-1)[iu] - rest) / rest) for q in p]
-    return np.asarray(drift)
-
-
 def _stack(curves: list[np.ndarray]) -> list[float]:
     """Mean over trajectories of per-step curves (NaN-aware: a stopped rollout leaves the mean)."""
     with warnings.catch_warnings():
@@ -100,11 +90,14 @@ def horizon(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], tra
         stable.append(length if result.stopped_at is None else result.stopped_at)
         rigid = traj.particle_type == RIGID_PARTICLE_TYPE
         if rigid.sum() >= 2 and result.predicted.shape[0]:
+            start = result.initial_window[-1:]  # drift since the rollout began (metrics.rigidity_drift)
             drift = np.full(length, np.nan)
-            drift[: result.predicted.shape[0]] = rigidity_drift(result.predicted, rigid)
+            drift[: result.predicted.shape[0]] = metrics.rigidity_drift(
+                np.concatenate([start, result.predicted]), rigid)[1:]
             drifts.append(drift)
             truth = np.full(length, np.nan)
-            truth[: min(length, len(result.ground_truth))] = rigidity_drift(result.ground_truth[:length], rigid)
+            truth[: min(length, len(result.ground_truth))] = metrics.rigidity_drift(
+                np.concatenate([start, result.ground_truth[:length]]), rigid)[1:]
             truth_drifts.append(truth)
     out.curves["mse"] = _stack(errors)
     if drifts:

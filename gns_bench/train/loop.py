@@ -11,8 +11,10 @@ from __future__ import annotations
 import collections
 import dataclasses
 import json
+import math
 import statistics
 import time
+import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +26,7 @@ from tqdm import tqdm
 from gns_bench.config import Config, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
-from gns_bench.devices import resolve_device
+from gns_bench.devices import load_average, resolve_device, set_threads, usable_cores
 from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
@@ -47,6 +49,7 @@ class TrainResult:
     wall_time_s: float  # training time (`StepClock`) over every call that led to this checkpoint (resumes too)
     eval_seconds: float = 0.0  # spent by this call in periodic evaluation (`on_eval`), not in wall_time_s
     speed: autotune.SpeedSettings | None = None  # the precision and compile setting it trained with
+    oversubscribed: str = ""  # when the machine's load exceeded its cores while this call trained (timings off)
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -102,6 +105,34 @@ def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: f
     mine = samples[first:first + batch_size]
     noise = noise[start:start + sum(sizes[first:first + batch_size])]
     return make_batch(sampler.trajectories, mine, sampler.window), noise, int(moving.sum())
+
+
+class LoadWatch:
+    """Whether the machine was oversubscribed while a run timed itself: the 1-minute load average sampled at
+    each logged step against the usable cores. This run's own threads count in the load, so more than the
+    cores means another job competed (two 2-thread jobs on 2 cores made a step about 10x slower), and the
+    run's timings are not comparable. Warns once; `report()` says how often and how much for the run's tags."""
+
+    def __init__(self, own_threads: int):
+        self.cores = usable_cores()
+        self.limit = max(self.cores, own_threads) + 0.5
+        self.samples: list[float] = []
+
+    def sample(self) -> None:
+        value = load_average()
+        if not math.isfinite(value):
+            return
+        if value > self.limit and not any(v > self.limit for v in self.samples):
+            warnings.warn(f"the machine is oversubscribed: load {value:.1f} on {self.cores} usable cores; another "
+                          "job is competing, so this run's step times are not comparable", stacklevel=2)
+        self.samples.append(value)
+
+    def report(self) -> str:
+        over = [v for v in self.samples if v > self.limit]
+        if not over:
+            return ""
+        return (f"load above {self.limit:g} ({self.cores} cores) at {len(over)} of {len(self.samples)} logged steps, "
+                f"up to {max(over):.1f}")
 
 
 class StepClock:
@@ -184,8 +215,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     `train.batch_size` graphs of every step's batch; only rank 0 logs and writes checkpoints.
     """
     tc = config.train
-    if tc.num_threads:
-        torch.set_num_threads(tc.num_threads)
+    threads = set_threads(tc.num_threads)
     device = resolve_device(tc.device)
     group = distributed.from_environment(device)
     progress = progress and group.is_main
@@ -223,6 +253,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
 
     paused = 0.0  # seconds of this call spent in periodic evaluation
     clock = StepClock(earlier_wall_time)
+    load = LoadWatch(threads if device.type == "cpu" else 1)
 
     def training_seconds() -> float:
         return clock.total
@@ -274,6 +305,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             window_losses.append(value)
             bar.update(1)
             if step % tc.log_every == 0 or step == tc.steps:
+                load.sample()
                 mean_loss = sum(window_losses) / len(window_losses)
                 window_losses = []
                 bar.set_postfix(loss=f"{mean_loss:.3g}", lr=f"{lr:.2g}")
@@ -296,4 +328,4 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     group.close()
     elapsed = clock.total - earlier_wall_time
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
-    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused, speed)
+    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused, speed, load.report())

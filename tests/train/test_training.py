@@ -134,3 +134,27 @@ def test_step_clock_counts_a_stall_as_a_few_typical_steps() -> None:
     assert clock.total == pytest.approx(111.5)
     first = StepClock()
     assert first.add(60.0) == 60.0  # warm-up steps (compilation) count in full
+
+
+def test_threads_stay_within_the_usable_cores_and_oversubscription_is_said(monkeypatch: pytest.MonkeyPatch) -> None:
+    import torch
+
+    from gns_bench import devices
+    from gns_bench.train import loop
+
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setattr(devices, "usable_cores", lambda: 1)
+        assert devices.set_threads(8) == 1 and torch.get_num_threads() == 1  # asked for more than it may use
+        assert devices.set_threads(None) == 1
+    finally:
+        torch.set_num_threads(before)
+    monkeypatch.setattr(loop, "usable_cores", lambda: 2)
+    loads = iter([1.9, 5.3, 2.1])
+    monkeypatch.setattr(loop, "load_average", lambda: next(loads))
+    watch = loop.LoadWatch(own_threads=2)
+    with pytest.warns(UserWarning, match="oversubscribed: load 5.3 on 2 usable cores"):
+        for _ in range(3):
+            watch.sample()
+    assert watch.report() == "load above 2.5 (2 cores) at 1 of 3 logged steps, up to 5.3"
+    assert loop.LoadWatch(own_threads=2).report() == ""
