@@ -1,0 +1,447 @@
+"""Continuous Convolution (CConv), the baseline of the GNS paper's Sec. 5.5 / App. D, in pure PyTorch.
+
+CConv is Ummenhofer et al., "Lagrangian Fluid Simulation with Continuous Convolutions" (ICLR 2020). The numbers
+and choices here follow the authors' code, isl-org/DeepLagrangianFluids: models/default_torch.py (network),
+scripts/train_network_torch.py (loss, two unrolled steps, schedule), and the Open3D layer it calls
+(open3d.ml.torch.layers.ContinuousConv; reference maths in Open3D's python/test/ml_ops/cconv_python.py).
+
+One continuous convolution at a query point x over the sources x_j closer than the radius r:
+
+    out(x) = sum_j  a(|x_j - x| / r) * f_j @ g(Lambda((x_j - x) / r))  (+ bias)
+
+  Lambda  maps the unit ball onto the cube [-1, 1]^D preserving volume: in 3D Griepentrog et al.'s map, ball ->
+          cylinder -> cube (Open3D's 'ball_to_cube_volume_preserving'); in 2D the inverse of Shirley & Chiu's
+          concentric square -> disk map, which is equal-area and is exactly the cylinder -> cube step of the 3D
+          map applied to a cross-section;
+  g       a grid of K^D matrices [C_in, C_out] (K = 4), the outer nodes on the cube's faces (align_corners), read
+          by bilinear / trilinear interpolation with clamping;
+  a       the poly6 window clamp((1 - q^2)^3, 0, 1);
+  no normalisation by the neighbour count (the authors set normalize=False).
+
+The interpolation weights depend on positions only; they are computed once per step and shared by every layer.
+As in Open3D (whose op has no gradient with respect to positions) the geometry is not differentiated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gns_bench.config import ConfigError
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata
+from gns_bench.model.neighbours import radius_graph
+from gns_bench.model.precision import autocast
+
+CONTEXT_STD_FLOOR = 1e-8
+
+
+@dataclass
+class CConvConfig:
+    """Every choice of the CConv baseline; defaults are the authors' (file: line in DeepLagrangianFluids)."""
+
+    layer_channels: list[int] = field(default_factory=lambda: [32, 64, 64])  # default_torch.py:22, then D outputs
+    filter_resolution: int = 4  # K: a 4x4x4 filter (default_torch.py:11), 4x4 in 2D
+    coordinate_mapping: Literal["ball_to_cube_volume_preserving", "ball_to_cube_radial"] = (
+        "ball_to_cube_volume_preserving")  # default_torch.py:13
+    window: Literal["poly6", "none"] = "poly6"  # default_torch.py:15, 37-38
+    normalize: bool = False  # default_torch.py:52
+    # The convolution radius; None: the dataset's connectivity radius R, filled in by CConvSimulator. The authors'
+    # radius is half the filter extent 1.5 * 6 particle radii (default_torch.py:29), i.e. 2.25 particle spacings;
+    # our R is ~1.5 spacings (datasets/*.toml), so 1.5 * R would match theirs. R is the default: CConv then sees
+    # the same neighbourhood as GNS's graph, and the edges are those the pipeline already searches.
+    radius: float | None = None
+    # The authors' network runs in SI units on their data (particle radius 0.025 m, frames 1/50 s): velocities of
+    # order 1 m/s enter as features and the 1/128 output scale suits corrections in metres. Ours runs in those
+    # units too: lengths scaled so the convolution radius is theirs (0.5 * 1.5 * 6 * 0.025 m), time so a stored
+    # frame lasts their 1/50 s (default_torch.py:16). reference_radius = radius and reference_dt = 1 give raw units.
+    reference_radius: float = 0.1125
+    reference_dt: float = 1 / 50
+    correction_scale: float = 1 / 128  # default_torch.py:159
+    # "euler": v* = v + g, x* = x + v* (dt = 1), exact for our finite-difference velocities under gravity alone.
+    # "trapezoid": x* = x + (v + v*) / 2, the authors' code (default_torch.py:96-97), exact for their data's
+    # instantaneous velocities; on finite differences it lags free fall by g / 2, which the network must learn.
+    integrator: Literal["euler", "trapezoid"] = "euler"
+    gravity: list[float] | None = None  # per stored frame squared; None: metadata.gravity
+    # Fluid particles also get GNS's clipped wall distances (App. B.2) through the authors' `other_feats` input:
+    # most of our datasets have walls at the bounds and no wall particles, which CConv alone would not see.
+    # None: where metadata.walls says the bounds are walls.
+    wall_features: bool | None = None
+    neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
+    # Loss (train_network_torch.py:111-119, 134-145): 128 * mean over steps of the mean over fluid particles of
+    # exp(-n_i / 40) * (|x_pred - x_true|^2 + 1e-9)^(gamma / 2), distances in the reference units.
+    gamma: float = 0.5
+    neighbour_scale: float = 1 / 40
+    distance_epsilon: float = 1e-9
+    loss_scale: float = 128.0
+    unrolled_steps: int = 2  # window=3 (train_network_torch.py:57): two predicted steps, weighted 0.5 each
+    # Training (train_network_torch.py:19, 67-95; dataset_reader_physics.py:50-55): Adam(lr 1e-3, eps 1e-6),
+    # 16 scenes a batch, 50k iterations, lr factors piecewise constant after the boundaries; random rotations
+    # about the gravity axis as augmentation (the training loop's job).
+    learning_rate: float = 1e-3
+    adam_eps: float = 1e-6
+    batch_size: int = 16
+    train_steps: int = 50_000
+    lr_boundaries: list[int] = field(default_factory=lambda: [25_000, 30_000, 35_000, 40_000, 45_000])
+    lr_factors: list[float] = field(default_factory=lambda: [1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125])
+    random_rotation: bool = True
+
+    def validate(self) -> None:
+        def require(condition: bool, key: str, message: str) -> None:
+            if not condition:
+                raise ConfigError(f"cconv.{key}: {message}")
+
+        require(len(self.layer_channels) >= 1 and all(c > 0 for c in self.layer_channels), "layer_channels",
+                "at least one positive width")
+        require(self.filter_resolution >= 2, "filter_resolution", "must be >= 2")
+        require(self.radius is None or self.radius > 0, "radius", "must be > 0")
+        require(self.reference_radius > 0 and self.reference_dt > 0, "reference_radius", "units must be > 0")
+        require(self.unrolled_steps >= 1, "unrolled_steps", "must be >= 1")
+        require(len(self.lr_factors) == len(self.lr_boundaries) + 1, "lr_factors", "one more than lr_boundaries")
+
+
+def learning_rate(config: CConvConfig, step: int) -> float:
+    """The authors' piecewise-constant schedule (train_network_torch.py:67-90): base lr times the factor of the
+    last boundary that `step` has passed."""
+    passed = sum(step > b for b in config.lr_boundaries)
+    return config.learning_rate * config.lr_factors[passed]
+
+
+# ----------------------------------------------------------------------------------------------
+# The convolution
+# ----------------------------------------------------------------------------------------------
+
+def _disk_to_square(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit disk -> [-1, 1]^2, the inverse of Shirley & Chiu's concentric map (equal-area, area ratio 4 / pi)."""
+    r = torch.sqrt(x * x + y * y)
+    x_wide = y.abs() <= x.abs()  # the wedge around the x axis
+    safe_x = torch.where(x == 0, torch.ones_like(x), x)
+    safe_y = torch.where(y == 0, torch.ones_like(y), y)
+    angle_x = (4 / math.pi) * torch.atan(y / safe_x)  # in [-1, 1] inside the wedge
+    angle_y = (4 / math.pi) * torch.atan(x / safe_y)
+    u = torch.where(x_wide, torch.sign(x) * r, torch.sign(y) * r * angle_y)
+    v = torch.where(x_wide, torch.sign(x) * r * angle_x, torch.sign(y) * r)
+    return u, v
+
+
+def _ball_to_cylinder(p: torch.Tensor) -> torch.Tensor:
+    """Unit ball -> cylinder (unit disk x [-1, 1], axis the last coordinate), volume preserving (Griepentrog et
+    al. 2008): points near the axis (5/4 z^2 > x^2 + y^2) go to the caps, the others to the side."""
+    x, y, z = p.unbind(-1)
+    t = p.norm(dim=-1)
+    rho = torch.sqrt(x * x + y * y)
+    tiny = torch.finfo(p.dtype).tiny
+    cap = 1.25 * z * z > rho * rho
+    s = torch.where(cap, torch.sqrt(3 * t / (t + z.abs()).clamp_min(tiny)), t / rho.clamp_min(tiny))
+    height = torch.where(cap, torch.sign(z) * t, 1.5 * z)
+    return torch.stack([s * x, s * y, height], dim=-1)
+
+
+def ball_to_cube(p: torch.Tensor, mapping: str = "ball_to_cube_volume_preserving") -> torch.Tensor:
+    """Points [..., D] of the unit ball -> the cube [-1, 1]^D (D = 2 or 3)."""
+    if mapping == "ball_to_cube_radial":  # stretch each ray so the sphere lands on the cube
+        inf_norm = p.abs().amax(dim=-1, keepdim=True)
+        return p * p.norm(dim=-1, keepdim=True) / inf_norm.clamp_min(torch.finfo(p.dtype).tiny)
+    if mapping != "ball_to_cube_volume_preserving":
+        raise ValueError(f"unknown coordinate mapping {mapping!r}")
+    if p.shape[-1] == 2:
+        return torch.stack(_disk_to_square(p[..., 0], p[..., 1]), dim=-1)
+    if p.shape[-1] == 3:
+        c = _ball_to_cylinder(p)
+        u, v = _disk_to_square(c[..., 0], c[..., 1])
+        return torch.stack([u, v, c[..., 2]], dim=-1)
+    raise ValueError(f"ball_to_cube needs D = 2 or 3, got {p.shape[-1]}")
+
+
+def poly6_window(q2: torch.Tensor) -> torch.Tensor:
+    """The window a(q) of squared normalised distances q^2 = |x_j - x|^2 / r^2 (default_torch.py:37-38)."""
+    return torch.clamp((1 - q2) ** 3, 0, 1)
+
+
+class ConvGeometry(NamedTuple):
+    """Where each edge reads the filter: the 2^D grid nodes around its mapped position and their weights
+    (interpolation weight times window), for queries numbered 0..num_queries-1."""
+
+    senders: torch.Tensor  # [E] index into the sources
+    receivers: torch.Tensor  # [E] index into the queries
+    nodes: torch.Tensor  # [E, 2^D] flat filter index, x fastest (the filter tensor is [.., z, y, x, C_in, C_out])
+    weights: torch.Tensor  # [E, 2^D]
+    window: torch.Tensor  # [E] the window values alone (for normalize)
+    num_queries: int
+
+
+def cconv_geometry(source_position: torch.Tensor, query_position: torch.Tensor, senders: torch.Tensor,
+                   receivers: torch.Tensor, radius: float, filter_resolution: int = 4,
+                   coordinate_mapping: str = "ball_to_cube_volume_preserving",
+                   window: str = "poly6") -> ConvGeometry:
+    """The filter lookups of the edges sender -> receiver (sources [M, D], queries [N, D])."""
+    k, dim = filter_resolution, source_position.shape[1]
+    rel = (source_position.detach().index_select(0, senders)
+           - query_position.detach().index_select(0, receivers)) / radius
+    q2 = rel.square().sum(dim=1)
+    window_value = poly6_window(q2) if window == "poly6" else torch.ones_like(q2)
+    grid = (ball_to_cube(rel, coordinate_mapping) + 1) * (0.5 * (k - 1))  # in [0, K-1] (align_corners)
+    lower = torch.floor(grid).clamp(0, k - 1)
+    frac = (grid - lower).clamp(0, 1)
+    lower = lower.long()
+    upper = (lower + 1).clamp(max=k - 1)
+    nodes, weights = [], []
+    for corner in itertools.product((0, 1), repeat=dim):
+        index = torch.zeros_like(senders)
+        weight = window_value
+        for d, bit in enumerate(corner):
+            index = index + (upper[:, d] if bit else lower[:, d]) * k**d
+            weight = weight * (frac[:, d] if bit else 1 - frac[:, d])
+        nodes.append(index)
+        weights.append(weight)
+    return ConvGeometry(senders, receivers, torch.stack(nodes, dim=1), torch.stack(weights, dim=1), window_value,
+                        query_position.shape[0])
+
+
+def apply_cconv(features: torch.Tensor, geometry: ConvGeometry, kernel: torch.Tensor,
+                bias: torch.Tensor | None = None, normalize: bool = False) -> torch.Tensor:
+    """Output features [N, C_out] from source features [M, C_in] and a filter [K, .., K, C_in, C_out].
+
+    Each source's weighted features are scattered into its receiver's filter cells (index_add), then one matmul
+    with the flattened filter sums over cells and channels. Accumulation runs in the geometry's dtype (fp32 under
+    bf16 autocast); the matmul follows autocast."""
+    c_in, c_out = kernel.shape[-2:]
+    cells = kernel[..., 0, 0].numel()
+    n = geometry.num_queries
+    source = features.index_select(0, geometry.senders).to(geometry.weights.dtype)
+    cell_sums = source.new_zeros((n * cells, c_in))
+    base = geometry.receivers * cells
+    for c in range(geometry.nodes.shape[1]):
+        cell_sums = cell_sums.index_add(0, base + geometry.nodes[:, c], source * geometry.weights[:, c:c + 1])
+    out = cell_sums.reshape(n, cells * c_in) @ kernel.reshape(cells * c_in, c_out)
+    if normalize:  # Open3D's normalize: divide by the sum of the window values (the count without a window)
+        total = geometry.window.new_zeros(n).index_add(0, geometry.receivers, geometry.window)
+        out = out / torch.where(total > 0, total, torch.ones_like(total)).unsqueeze(1).to(out.dtype)
+    return out if bias is None else out + bias
+
+
+def continuous_conv(features: torch.Tensor, source_position: torch.Tensor, query_position: torch.Tensor,
+                    edge_index: torch.Tensor, radius: float, kernel: torch.Tensor, bias: torch.Tensor | None = None,
+                    coordinate_mapping: str = "ball_to_cube_volume_preserving", window: str = "poly6",
+                    normalize: bool = False) -> torch.Tensor:
+    """One continuous convolution over edges [2, E] (sender into the sources, receiver into the queries)."""
+    geometry = cconv_geometry(source_position, query_position, edge_index[0], edge_index[1], radius,
+                              kernel.shape[0], coordinate_mapping, window)
+    return apply_cconv(features, geometry, kernel, bias, normalize)
+
+
+class ContinuousConv(nn.Module):
+    """A continuous convolution layer: filter [K]*D + [C_in, C_out] initialised U(-0.05, 0.05), zero bias
+    (Open3D's defaults, which the authors keep)."""
+
+    def __init__(self, in_channels: int, out_channels: int, dim: int, filter_resolution: int = 4,
+                 bias: bool = True, normalize: bool = False):
+        super().__init__()
+        self.normalize = normalize
+        self.kernel = nn.Parameter(torch.empty(*[filter_resolution] * dim, in_channels, out_channels))
+        nn.init.uniform_(self.kernel, -0.05, 0.05)
+        self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
+
+    def forward(self, features: torch.Tensor, geometry: ConvGeometry) -> torch.Tensor:
+        return apply_cconv(features, geometry, self.kernel, self.bias, self.normalize)
+
+
+# ----------------------------------------------------------------------------------------------
+# The network and the simulator
+# ----------------------------------------------------------------------------------------------
+
+def _dense(in_features: int, out_features: int) -> nn.Linear:
+    layer = nn.Linear(in_features, out_features)
+    nn.init.xavier_uniform_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class CConvNetwork(nn.Module):
+    """The authors' default network (default_torch.py:60-160): layer 0 concatenates a convolution over obstacle
+    neighbours, one over fluid neighbours and a dense layer on the particle itself; every further layer is
+    conv + dense on ReLU of the previous output, plus the previous output where the widths agree."""
+
+    def __init__(self, dim: int, fluid_in: int, obstacle_in: int, channels: list[int], filter_resolution: int,
+                 normalize: bool):
+        super().__init__()
+
+        def conv(i: int, o: int) -> ContinuousConv:
+            return ContinuousConv(i, o, dim, filter_resolution, normalize=normalize)
+
+        c0 = channels[0]
+        self.conv0_fluid = conv(fluid_in, c0)
+        self.conv0_obstacle = conv(obstacle_in, c0)
+        self.dense0_fluid = _dense(fluid_in, c0)
+        widths = [3 * c0, *channels[1:], dim]
+        self.convs = nn.ModuleList(conv(i, o) for i, o in itertools.pairwise(widths))
+        self.denses = nn.ModuleList(_dense(i, o) for i, o in itertools.pairwise(widths))
+
+    def forward(self, fluid_features: torch.Tensor, obstacle_features: torch.Tensor, fluid: ConvGeometry,
+                obstacle: ConvGeometry) -> torch.Tensor:
+        h = torch.cat([self.conv0_obstacle(obstacle_features, obstacle), self.conv0_fluid(fluid_features, fluid),
+                       self.dense0_fluid(fluid_features)], dim=1)
+        for conv, dense in zip(self.convs, self.denses, strict=True):
+            x = F.relu(h)
+            out = conv(x, fluid) + dense(x)
+            h = out + h if out.shape[-1] == h.shape[-1] else out
+        return h
+
+
+class StepOutput(NamedTuple):
+    position: torch.Tensor  # [N, D] next positions; kinematic particles: constant-velocity extrapolation
+    fluid_neighbours: torch.Tensor  # [N] fluid neighbours within the radius at x* (0 for kinematic particles)
+
+
+class CConvSimulator(nn.Module):
+    """CConv as a learned simulator: x* from gravity and the last velocity, then x_new = x* + network(x*).
+
+    Fluid means every non-kinematic particle. Kinematic particles (type 3) are only sources, of the obstacle
+    convolution (their feature a constant 1: ours carry no normals, the authors' obstacle feature); they are never
+    queries nor in the loss, and at the step they sit at their constant-velocity extrapolation x_t + v_t (exact
+    for static and uniformly moving boundaries; callers overwrite them with the data afterwards)."""
+
+    uses_edges = True
+
+    def __init__(self, config: CConvConfig, metadata: Metadata):
+        super().__init__()
+        gravity = config.gravity if config.gravity is not None else metadata.gravity
+        if gravity is None:
+            raise ConfigError("cconv.gravity: the dataset's metadata.json has no 'gravity'; set it in the config")
+        # Resolve every dataset-dependent default here, so the stored (and logged) config holds the numbers.
+        config = dataclasses.replace(
+            config, radius=float(config.radius or metadata.default_connectivity_radius), gravity=list(gravity),
+            wall_features=bool(metadata.walls if config.wall_features is None else config.wall_features))
+        config.validate()
+        if len(config.gravity) != metadata.dim:
+            raise ConfigError(f"cconv.gravity: expected {metadata.dim} numbers, got {config.gravity}")
+        self.config = config
+        self.dim = metadata.dim
+        self.radius = config.radius
+        self.length_scale = config.reference_radius / config.radius  # reference length units per dataset unit
+        self.register_buffer("bounds", torch.tensor(metadata.bounds, dtype=torch.float32))
+        self.register_buffer("gravity", torch.tensor(config.gravity, dtype=torch.float32))
+        self.context_size = metadata.context_size
+        if self.context_size:
+            self.register_buffer("context_mean", torch.tensor(metadata.context_mean, dtype=torch.float32))
+            std = [max(s, CONTEXT_STD_FLOOR) for s in metadata.context_std]
+            self.register_buffer("context_std", torch.tensor(std, dtype=torch.float32))
+        # Fluid features: a constant 1 and the velocity (default_torch.py:122), then the authors' other_feats slot:
+        # the wall distances and the normalised global context.
+        fluid_in = 1 + self.dim + (2 * self.dim if config.wall_features else 0) + self.context_size
+        self.network = CConvNetwork(self.dim, fluid_in, 1, config.layer_channels, config.filter_resolution,
+                                    config.normalize)
+
+    def build_graph(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
+        return radius_graph(positions, self.radius, batch, backend=self.config.neighbour_backend, self_edges=False)
+
+    def _geometry(self, source: torch.Tensor, query: torch.Tensor, senders: torch.Tensor,
+                  receivers: torch.Tensor) -> ConvGeometry:
+        c = self.config
+        return cconv_geometry(source, query, senders, receivers, self.radius, c.filter_resolution,
+                              c.coordinate_mapping, c.window)
+
+    def step(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
+             context: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
+             precision: str = "fp32") -> StepOutput:
+        """One step from the window's last two positions (dt = 1 stored frame)."""
+        c = self.config
+        n = window.shape[0]
+        kinematic = particle_type == KINEMATIC_PARTICLE_TYPE
+        position, velocity = window[:, -1], window[:, -1] - window[:, -2]
+        gravity = self.gravity.to(window.dtype)
+        velocity_star = velocity + gravity
+        if c.integrator == "euler":
+            position_star = position + velocity_star
+        else:
+            position_star = position + 0.5 * (velocity + velocity_star)
+        position_star = torch.where(kinematic[:, None], position + velocity, position_star)
+
+        # Neighbours at x* (as the authors' network searches them), whatever edges the caller found at x_t.
+        senders, receivers = self.build_graph(position_star, batch)
+        fluid_index = torch.nonzero(~kinematic).squeeze(1)
+        local = torch.full((n,), -1, dtype=torch.long, device=window.device)
+        local[fluid_index] = torch.arange(fluid_index.shape[0], device=window.device)
+        into_fluid = ~kinematic[receivers]
+        from_fluid = into_fluid & ~kinematic[senders]
+        from_obstacle = into_fluid & kinematic[senders]
+        fluid_star = position_star.index_select(0, fluid_index)
+        fluid_geometry = self._geometry(fluid_star, fluid_star, local[senders[from_fluid]],
+                                        local[receivers[from_fluid]])
+        obstacle_geometry = self._geometry(position_star, fluid_star, senders[from_obstacle],
+                                           local[receivers[from_obstacle]])
+
+        parts = [torch.ones_like(fluid_star[:, :1]),
+                 velocity_star.index_select(0, fluid_index) * (self.length_scale / c.reference_dt)]
+        if c.wall_features:  # App. B.2's clipped distances to the bounds, at x*
+            bounds = (self.bounds if bounds is None else bounds).to(window.dtype)
+            parts += [((fluid_star - bounds[:, 0]) / self.radius).clamp(-1, 1),
+                      ((bounds[:, 1] - fluid_star) / self.radius).clamp(-1, 1)]
+        if self.context_size:
+            if context is None:
+                raise ValueError("this simulator was built for a dataset with a global context; pass context")
+            graph = torch.zeros(n, dtype=torch.long, device=window.device) if batch is None else batch
+            normalised = (context.to(window.dtype) - self.context_mean) / self.context_std
+            parts.append(normalised.index_select(0, graph.index_select(0, fluid_index)))
+        obstacle_features = torch.ones_like(position_star[:, :1])
+        with autocast(window.device, precision):
+            out = self.network(torch.cat(parts, dim=1), obstacle_features, fluid_geometry, obstacle_geometry)
+        correction = out.to(window.dtype) * (c.correction_scale / self.length_scale)
+        next_position = position_star.index_add(0, fluid_index, correction)
+        counts = torch.zeros(fluid_index.shape[0], dtype=window.dtype, device=window.device)
+        counts = counts.index_add(0, fluid_geometry.receivers, torch.ones_like(fluid_geometry.window))
+        neighbours = torch.zeros(n, dtype=window.dtype, device=window.device).index_add(0, fluid_index, counts)
+        return StepOutput(next_position, neighbours)
+
+    def predict_next_position(self, window: torch.Tensor, particle_type: torch.Tensor,
+                              batch: torch.Tensor | None = None, context: torch.Tensor | None = None,
+                              edge_index: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
+                              precision: str = "fp32") -> torch.Tensor:
+        """Next positions [N, D] from a window [N, W >= 2, D]. `edge_index` (edges at the last positions) is
+        ignored: CConv searches its neighbours at x*. The network runs under `precision` (autocast for "bf16"),
+        the integration in the window's dtype."""
+        if window.shape[1] < 2:
+            raise ValueError(f"CConv needs a window of at least 2 positions, got {window.shape[1]}")
+        return self.step(window, particle_type, batch, context, bounds, precision).position
+
+    def unrolled_loss(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
+                      context: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
+                      precision: str = "fp32") -> torch.Tensor:
+        """The authors' loss over S = unrolled_steps predicted steps from the first W frames of window [N, W+S, D]
+        (train_network_torch.py:114-145): predictions are fed back (kinematic particles from the data); step s
+        costs the mean over fluid particles of exp(-neighbour_scale * n_i) |x_pred - x_true|^gamma, per scene,
+        averaged over scenes, then over steps, times loss_scale."""
+        c = self.config
+        steps = c.unrolled_steps
+        w = window.shape[1] - steps
+        if w < 2:
+            raise ValueError(f"window of {window.shape[1]} frames: need >= 2 inputs + {steps} unrolled targets")
+        kinematic = particle_type == KINEMATIC_PARTICLE_TYPE
+        fluid_index = torch.nonzero(~kinematic).squeeze(1)
+        if fluid_index.numel() == 0:
+            raise ValueError("unrolled_loss needs at least one non-kinematic particle")
+        graph = torch.zeros_like(particle_type) if batch is None else batch
+        graph = graph.index_select(0, fluid_index)
+        num_graphs = int(graph.max()) + 1
+        per_graph = torch.zeros(num_graphs, dtype=window.dtype, device=window.device)
+        count = per_graph.index_add(0, graph, torch.ones_like(graph, dtype=window.dtype))
+        has_fluid = count > 0
+        history = window[:, :w]
+        total = window.new_zeros(())
+        for s in range(steps):
+            out = self.step(history, particle_type, batch, context, bounds, precision)
+            target = window[:, w + s]
+            error = (out.position - target).index_select(0, fluid_index) * self.length_scale
+            distance = (error.square().sum(dim=1) + c.distance_epsilon) ** (c.gamma / 2)
+            importance = torch.exp(-c.neighbour_scale * out.fluid_neighbours.index_select(0, fluid_index))
+            sums = per_graph.index_add(0, graph, importance * distance)
+            total = total + (sums[has_fluid] / count[has_fluid]).mean()
+            fed_back = torch.where(kinematic[:, None], target, out.position)
+            history = torch.cat([history[:, 1:], fed_back[:, None]], dim=1)
+        return c.loss_scale * total / steps
