@@ -7,7 +7,7 @@
     nox -s ui                 the MLflow UI on 127.0.0.1
     nox -s report -- SWEEP    a sweep's report from MLflow (markdown + PNG) into reports/
     nox -s bench              the speed benchmark into reports/bench/
-    nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|paper
+    nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|cpu|paper
                               e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
     nox -s campaign-paper -- TIER   every sweep of sweeps/campaigns/paper.toml in order, then every report
 """
@@ -57,7 +57,7 @@ def report(session: nox.Session) -> None:
     """nox -s report -- SWEEP [--tier T]: the sweep's report from MLflow into reports/."""
     install(session)
     if not session.posargs:
-        session.error("usage: nox -s report -- SWEEP|domains|stability|all [--tier smoke|small|paper]")
+        session.error("usage: nox -s report -- SWEEP|domains|stability|index|all [--tier smoke|small|cpu|paper]")
     session.run("gns-bench", "report", *session.posargs)
 
 

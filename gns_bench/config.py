@@ -17,8 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-# The budgets a sweep, a dataset and a report come in (sweeps/tiers.toml; datasets/<domain>.toml [tiers.*]).
-TIERS = ("smoke", "small", "paper")
+# The budgets a sweep, a dataset and a report come in (sweeps/tiers.toml; datasets/<domain>.toml [tiers.*]),
+# from the cheapest: smoke (a pipeline check), small (the first CPU protocol), cpu (the CPU campaign's, chosen
+# by sweeps/studies/cpu_budget.toml), paper (the paper's budget, for GPUs).
+TIERS = ("smoke", "small", "cpu", "paper")
 
 
 class ConfigError(ValueError):

@@ -28,6 +28,7 @@ WATER = 5
 TIERS = {  # trajectories per split, balls, frames
     "smoke": {"train": 8, "valid": 2, "test": 2, "balls": 24, "frames": 60},
     "small": {"train": 64, "valid": 8, "test": 8, "balls": 48, "frames": 150},
+    "cpu": {"train": 64, "valid": 8, "test": 8, "balls": 48, "frames": 150},
 }
 
 

@@ -316,7 +316,8 @@ class CConvSimulator(nn.Module):
             raise ConfigError("cconv.gravity: the dataset's metadata.json has no 'gravity'; set it in the config")
         # Resolve every dataset-dependent default here, so the stored (and logged) config holds the numbers.
         config = dataclasses.replace(
-            config, radius=float(config.radius or metadata.default_connectivity_radius), gravity=list(gravity),
+            config, radius=float(metadata.default_connectivity_radius if config.radius is None else config.radius),
+            gravity=list(gravity),
             wall_features=bool(metadata.walls if config.wall_features is None else config.wall_features))
         config.validate()
         if len(config.gravity) != metadata.dim:
@@ -426,7 +427,7 @@ class CConvSimulator(nn.Module):
         fluid_index = torch.nonzero(~kinematic).squeeze(1)
         if fluid_index.numel() == 0:
             raise ValueError("unrolled_loss needs at least one non-kinematic particle")
-        graph = torch.zeros_like(particle_type) if batch is None else batch
+        graph = torch.zeros(particle_type.shape[0], dtype=torch.long, device=window.device) if batch is None else batch
         graph = graph.index_select(0, fluid_index)
         num_graphs = int(graph.max()) + 1
         per_graph = torch.zeros(num_graphs, dtype=window.dtype, device=window.device)
