@@ -191,7 +191,7 @@ def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: 
     if meta.dim != simulator.dim:
         raise ValueError(f"{dataset_dir}: dim {meta.dim} does not match the simulator's dim {simulator.dim}")
     trajectories = load_split(dataset_dir, eval_config.split, meta,
-                              min_length=simulator.config.input_sequence_length + 1)
+                              min_length=simulator.input_sequence_length + 1)
     evaluation = evaluate(simulator, trajectories, eval_config, device=device, progress=progress,
                           bounds=meta.bounds if scene_bounds else None)
     _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split)

@@ -24,6 +24,7 @@ class GraphBatch:
     batch: torch.Tensor  # [sum N] graph index
     context: torch.Tensor | None  # [B, C] context at the last input frame
     target: torch.Tensor | None  # [sum N, D] next positions (None when there is no target frame)
+    future: torch.Tensor | None = None  # [sum N, S, D] the S frames after the window (unrolled training)
 
     @property
     def num_graphs(self) -> int:
@@ -34,13 +35,14 @@ class GraphBatch:
             return None if t is None else t.to(device, non_blocking=True)
 
         return GraphBatch(move(self.window), move(self.particle_type), move(self.batch), move(self.context),
-                          move(self.target))
+                          move(self.target), move(self.future))
 
 
 def make_batch(trajectories: list[Trajectory], samples: list[tuple[int, int]], window: int,
-               with_target: bool = True) -> GraphBatch:
-    """Stack samples (trajectory index, last input frame t) into one batch of disjoint graphs."""
-    windows, types, graph, contexts, targets = [], [], [], [], []
+               with_target: bool = True, future: int = 1) -> GraphBatch:
+    """Stack samples (trajectory index, last input frame t) into one batch of disjoint graphs; with `future`
+    > 1, the S = future frames after each window too (architectures trained on unrolled steps)."""
+    windows, types, graph, contexts, targets, futures = [], [], [], [], [], []
     for index, (traj_index, t) in enumerate(samples):
         traj = trajectories[traj_index]
         frames = traj.position[t - window + 1: t + 1]  # [W, N, D]
@@ -51,28 +53,32 @@ def make_batch(trajectories: list[Trajectory], samples: list[tuple[int, int]], w
             contexts.append(traj.step_context[t])
         if with_target:
             targets.append(traj.position[t + 1])
+        if future > 1:
+            futures.append(np.swapaxes(traj.position[t + 1: t + 1 + future], 0, 1))
     return GraphBatch(
         window=torch.from_numpy(np.concatenate(windows)),
         particle_type=torch.from_numpy(np.concatenate(types)),
         batch=torch.from_numpy(np.concatenate(graph)),
         context=torch.from_numpy(np.stack(contexts)) if contexts else None,
         target=torch.from_numpy(np.concatenate(targets)) if with_target else None,
+        future=torch.from_numpy(np.concatenate(futures)) if futures else None,
     )
 
 
 class WindowSampler:
     """Uniform random training windows over all trajectories, deterministic per (seed, step)."""
 
-    def __init__(self, trajectories: list[Trajectory], window: int, seed: int):
+    def __init__(self, trajectories: list[Trajectory], window: int, seed: int, future: int = 1):
         self.trajectories = trajectories
         self.window = window
         self.seed = seed
-        # Valid last-input frames t: window-1 .. T-2 (t+1 must exist).
-        self.counts = np.array([traj.num_steps - window for traj in trajectories], dtype=np.int64)
+        self.future = future  # frames after the window each sample needs (1: the one-step target)
+        # Valid last-input frames t: window-1 .. T-1-future (t+future must exist).
+        self.counts = np.array([traj.num_steps - window - future + 1 for traj in trajectories], dtype=np.int64)
         if np.any(self.counts < 1):
             short = int(np.argmin(self.counts))
             raise ValueError(f"trajectory {short} has {trajectories[short].num_steps} frames; a training "
-                             f"window needs {window + 1}")
+                             f"window needs {window + future}")
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
 
     def __len__(self) -> int:
@@ -88,7 +94,7 @@ class WindowSampler:
         return [(int(i), int(j)) for i, j in zip(traj, t, strict=True)]
 
     def batch(self, step: int, batch_size: int) -> GraphBatch:
-        return make_batch(self.trajectories, self.samples(step, batch_size), self.window)
+        return make_batch(self.trajectories, self.samples(step, batch_size), self.window, future=self.future)
 
     def noise_generator(self, step: int) -> torch.Generator:
         generator = torch.Generator()

@@ -85,7 +85,7 @@ def one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_window
 
 def _one_step_mse(simulator: LearnedSimulator, trajectory: Trajectory, max_windows: int | None,
                   device: torch.device | str, precision: str) -> OneStepMSE:
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     frames = list(range(w - 1, trajectory.num_steps - 1))
     if max_windows is not None and len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
@@ -166,7 +166,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
         monitors = (arm(health_monitors(simulator, traj, config.rollout_steps, bounds), config.stop_on)
                     if config.monitors else [])
-        w = simulator.config.input_sequence_length
+        w = simulator.input_sequence_length
         length = traj.num_steps - w if config.rollout_steps is None else min(config.rollout_steps, traj.num_steps - w)
         steps_bar = tqdm(total=length, desc=f"trajectory {index} rollout", unit="step", leave=False,
                          disable=not progress)  # within a trajectory: steps/s and ETA
@@ -219,7 +219,7 @@ def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_ste
                     bounds: list[list[float]] | None = None) -> list:
     """The default monitors for one trajectory, with its ground-truth kinetic energy as the reference
     (in inflow scenes particles not yet present follow the data, in the rollout as in the reference)."""
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     truth = trajectory.position[w - 1: w + (num_steps if num_steps is not None else trajectory.num_steps)]
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
     reference = metrics.kinetic_energy(truth[1:], truth[0], moving) if len(truth) > 1 else None

@@ -45,7 +45,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     Inflow (`trajectory.birth_step`): a particle enters the graph at its birth frame with the window of
     its prescribed path; before that it follows the data, like a kinematic particle, and sees nothing.
     """
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     available = trajectory.num_steps - w
     num_steps = available if num_steps is None else min(num_steps, available)
     dtype = dtype_of(precision)
@@ -62,12 +62,12 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     static = (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic[:, 0]
     if birth is not None:
         pass  # the particle set changes: a fresh search every step over the particles present
-    elif neighbour_skin > 0 and simulator.network.uses_edges:
-        neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.config.neighbour_backend,
-                                      simulator.config.self_edges)
-    elif reuse_static_edges and simulator.network.uses_edges and bool(static.any()) and not bool(static.all()):
-        neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.config.neighbour_backend,
-                                           simulator.config.self_edges)
+    elif neighbour_skin > 0 and simulator.uses_edges:
+        neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.neighbour_backend,
+                                      simulator.self_edges)
+    elif reuse_static_edges and simulator.uses_edges and bool(static.any()) and not bool(static.all()):
+        neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.neighbour_backend,
+                                           simulator.self_edges)
     with network_dtype(simulator, dtype):
         for step in range(num_steps):
             frame = w + step

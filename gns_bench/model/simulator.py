@@ -86,6 +86,26 @@ class LearnedSimulator(nn.Module):
         if config.init == "sonnet":
             sonnet_init_(self)
 
+    # What rollouts, evaluation and monitors read of any simulator (GNS, CConv, DPI alike).
+    architecture = "gns"
+
+    @property
+    def input_sequence_length(self) -> int:
+        """Positions in an input window: rollouts start after this many ground-truth frames."""
+        return self.config.input_sequence_length
+
+    @property
+    def uses_edges(self) -> bool:
+        return self.network.uses_edges
+
+    @property
+    def neighbour_backend(self) -> str:
+        return self.config.neighbour_backend
+
+    @property
+    def self_edges(self) -> bool:
+        return self.config.self_edges
+
     @property
     def normalisation(self) -> features.Normalisation:
         return features.Normalisation(

@@ -80,7 +80,7 @@ def horizon(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], tra
             steps: int | None = None, device: str = "cpu", label: str = "long") -> StressResult:
     """Roll out trajectories longer than the training ones; error over time and the stable horizon."""
     out = StressResult("horizon")
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     length = max(t.num_steps - w for t in trajectories) if steps is None else steps
     errors, drifts, truth_drifts, stable = [], [], [], []
     for i, traj in enumerate(trajectories):
@@ -118,7 +118,7 @@ def precision(simulator: LearnedSimulator, trajectories: Sequence[Trajectory], p
     """The same rollouts in several precisions; divergence from the first one given (fp64 on CPU)."""
     out = StressResult("precision")
     reference_name = precisions[0]
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     length = max(t.num_steps - w for t in trajectories) if steps is None else steps
     results: dict[str, list[RolloutResult]] = {}
     seconds: dict[str, float] = {}
@@ -167,7 +167,7 @@ def perturbation(simulator: LearnedSimulator, trajectories: Sequence[Trajectory]
     """How fast a perturbation of size `std` grows in the model, and in the solver (pairs of ground-truth
     trajectories from the same initial condition, one jittered by the same std)."""
     out = StressResult("perturbation")
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     length = max(t.num_steps - w for t in trajectories) if steps is None else steps
     rng = np.random.default_rng(seed)
     model_d = []
@@ -204,7 +204,7 @@ def scale(simulator: LearnedSimulator, scenes: dict[int, tuple[list[Trajectory],
           training_particles: float, *, steps: int | None = None, device: str = "cpu") -> StressResult:
     """The model on larger scenes: factor -> (trajectories, their bounds). Error, stability and speed."""
     out = StressResult("scale")
-    w = simulator.config.input_sequence_length
+    w = simulator.input_sequence_length
     for factor, (trajectories, bounds) in sorted(scenes.items()):
         length = max(t.num_steps - w for t in trajectories) if steps is None else steps
         errors, baseline, seconds, done = [], [], [], []

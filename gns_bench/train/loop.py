@@ -104,7 +104,7 @@ def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: f
     start = sum(sizes[:first])
     mine = samples[first:first + batch_size]
     noise = noise[start:start + sum(sizes[first:first + batch_size])]
-    return make_batch(sampler.trajectories, mine, sampler.window), noise, int(moving.sum())
+    return make_batch(sampler.trajectories, mine, sampler.window, future=sampler.future), noise, int(moving.sum())
 
 
 class LoadWatch:
