@@ -31,6 +31,9 @@ class ConfigError(ValueError):
 class ModelConfig:
     """The learned simulator (paper Sec. 3-4.2, App. A; DeepMind's release, learning_to_simulate/)."""
 
+    # The learned simulator: the paper's GNS, or one of the baselines it is compared with (Sec. 5.5, App. D),
+    # each with its own section ([cconv], [dpi]) for what it does differently.
+    architecture: Literal["gns", "cconv", "dpi"] = "gns"
     message_passing_steps: int = 10  # M
     latent_size: int = 128
     mlp_hidden_layers: int = 2
@@ -123,6 +126,72 @@ class TrainConfig:
         _require(self.eval_rollout_steps >= 1, "train.eval_rollout_steps", "must be >= 1")
 
 
+@dataclass
+class CConvConfig:
+    """Every choice of the CConv baseline; defaults are the authors' (file: line in DeepLagrangianFluids)."""
+
+    layer_channels: list[int] = field(default_factory=lambda: [32, 64, 64])  # default_torch.py:22, then D outputs
+    filter_resolution: int = 4  # K: a 4x4x4 filter (default_torch.py:11), 4x4 in 2D
+    coordinate_mapping: Literal["ball_to_cube_volume_preserving", "ball_to_cube_radial"] = (
+        "ball_to_cube_volume_preserving")  # default_torch.py:13
+    window: Literal["poly6", "none"] = "poly6"  # default_torch.py:15, 37-38
+    normalize: bool = False  # default_torch.py:52
+    # The convolution radius; None: the dataset's connectivity radius R, filled in by CConvSimulator. The authors'
+    # radius is half the filter extent 1.5 * 6 particle radii (default_torch.py:29), i.e. 2.25 particle spacings;
+    # our R is ~1.5 spacings (datasets/*.toml), so 1.5 * R would match theirs. R is the default: CConv then sees
+    # the same neighbourhood as GNS's graph, and the edges are those the pipeline already searches.
+    radius: float | None = None
+    # The authors' network runs in SI units on their data (particle radius 0.025 m, frames 1/50 s): velocities of
+    # order 1 m/s enter as features and the 1/128 output scale suits corrections in metres. Ours runs in those
+    # units too: lengths scaled so the convolution radius is theirs (0.5 * 1.5 * 6 * 0.025 m), time so a stored
+    # frame lasts their 1/50 s (default_torch.py:16). reference_radius = radius and reference_dt = 1 give raw units.
+    reference_radius: float = 0.1125
+    reference_dt: float = 1 / 50
+    correction_scale: float = 1 / 128  # default_torch.py:159
+    # "euler": v* = v + g, x* = x + v* (dt = 1), exact for our finite-difference velocities under gravity alone.
+    # "trapezoid": x* = x + (v + v*) / 2, the authors' code (default_torch.py:96-97), exact for their data's
+    # instantaneous velocities; on finite differences it lags free fall by g / 2, which the network must learn.
+    integrator: Literal["euler", "trapezoid"] = "euler"
+    gravity: list[float] | None = None  # per stored frame squared; None: metadata.gravity
+    # Fluid particles also get GNS's clipped wall distances (App. B.2) through the authors' `other_feats` input:
+    # most of our datasets have walls at the bounds and no wall particles, which CConv alone would not see.
+    # None: where metadata.walls says the bounds are walls.
+    wall_features: bool | None = None
+    neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
+    # Loss (train_network_torch.py:111-119, 134-145): 128 * mean over steps of the mean over fluid particles of
+    # exp(-n_i / 40) * (|x_pred - x_true|^2 + 1e-9)^(gamma / 2), distances in the reference units.
+    gamma: float = 0.5
+    neighbour_scale: float = 1 / 40
+    distance_epsilon: float = 1e-9
+    loss_scale: float = 128.0
+    unrolled_steps: int = 2  # window=3 (train_network_torch.py:57): two predicted steps, weighted 0.5 each
+    # Training (train_network_torch.py:19, 67-95; dataset_reader_physics.py:50-55): Adam(lr 1e-3, eps 1e-6),
+    # 16 scenes a batch, 50k iterations, lr factors piecewise constant after the boundaries; random rotations
+    # about the gravity axis as augmentation (the training loop's job).
+    # Their batch is 16 scenes and their run 50k steps: `train.batch_size` and `train.steps` here. Their schedule
+    # is CConv's own (the loop asks the architecture for it); its boundaries are fractions of the run, so the
+    # 25k/30k/.../45k of their 50k steps compress into any budget as the GNS schedule does. Their augmentation,
+    # random rotations about the gravity axis, is not done here (a 2D scene has no rotation that keeps gravity).
+    learning_rate: float = 1e-3
+    adam_eps: float = 1e-6
+    lr_boundaries: list[float] = field(default_factory=lambda: [0.5, 0.6, 0.7, 0.8, 0.9])
+    lr_factors: list[float] = field(default_factory=lambda: [1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125])
+
+    def validate(self) -> None:
+        def require(condition: bool, key: str, message: str) -> None:
+            if not condition:
+                raise ConfigError(f"cconv.{key}: {message}")
+
+        require(len(self.layer_channels) >= 1 and all(c > 0 for c in self.layer_channels), "layer_channels",
+                "at least one positive width")
+        require(self.filter_resolution >= 2, "filter_resolution", "must be >= 2")
+        require(self.radius is None or self.radius > 0, "radius", "must be > 0")
+        require(self.reference_radius > 0 and self.reference_dt > 0, "reference_radius", "units must be > 0")
+        require(self.unrolled_steps >= 1, "unrolled_steps", "must be >= 1")
+        require(len(self.lr_factors) == len(self.lr_boundaries) + 1, "lr_factors", "one more than lr_boundaries")
+        require(all(0 < b < 1 for b in self.lr_boundaries), "lr_boundaries", "fractions of the run, in (0, 1)")
+
+
 MonitorName = Literal["non_finite", "out_of_bounds", "energy_blowup", "density_collapse"]
 
 
@@ -205,12 +274,14 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     stress: StressConfig = field(default_factory=StressConfig)
+    cconv: CConvConfig = field(default_factory=CConvConfig)  # read when model.architecture = "cconv"
 
     def validate(self) -> Config:
         self.model.validate()
         self.train.validate()
         self.eval.validate()
         self.stress.validate()
+        self.cconv.validate()
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:

@@ -180,3 +180,18 @@ def test_the_summary_prints_each_metric_beside_its_baseline_over_the_same_steps(
                            "baseline_cv_rollout_mse": 0.07104, "baseline_cv_same_steps_mse": 0.0150})
     assert lines[2] == "constant velocity  0.015 over the same steps: GNS / constant velocity = 0.191x"
     assert "over 70 steps" in lines[1] and "stopped" in lines[1] and "0.07104" not in "".join(lines)
+
+
+@pytest.mark.parametrize("architecture", ["cconv"])
+def test_a_baseline_architecture_trains_and_evaluates_end_to_end(architecture: str, tiny_dataset: Path,
+                                                                tmp_path: Path) -> None:
+    """`model.architecture` switches the learned simulator (Sec. 5.5 baselines) inside the same training loop,
+    evaluation, rollouts and MLflow logging."""
+    out = tmp_path / architecture
+    assert main(["train", str(tiny_dataset), f"model.architecture={architecture}", "train.steps=6",
+                 "train.log_every=3", "eval.max_trajectories=1", "eval.rollout_steps=5", "eval.one_step_windows=3",
+                 "--out", str(out), "--experiment", "baselines-test"]) == 0
+    run = client().get_run((out / "mlflow_run_id").read_text().strip())
+    assert run.info.status == "FINISHED" and run.data.params["model.architecture"] == architecture
+    assert {"test/rollout_mse", "test/one_step_mse", "train_loss"} <= set(run.data.metrics)
+    assert [m.step for m in client().get_metric_history(run.info.run_id, "train_loss")] == [3, 6]

@@ -27,14 +27,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gns_bench.config import ConfigError
+from gns_bench.config import CConvConfig, ConfigError
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata
 from gns_bench.model.neighbours import radius_graph
 from gns_bench.model.precision import autocast
@@ -42,74 +41,10 @@ from gns_bench.model.precision import autocast
 CONTEXT_STD_FLOOR = 1e-8
 
 
-@dataclass
-class CConvConfig:
-    """Every choice of the CConv baseline; defaults are the authors' (file: line in DeepLagrangianFluids)."""
-
-    layer_channels: list[int] = field(default_factory=lambda: [32, 64, 64])  # default_torch.py:22, then D outputs
-    filter_resolution: int = 4  # K: a 4x4x4 filter (default_torch.py:11), 4x4 in 2D
-    coordinate_mapping: Literal["ball_to_cube_volume_preserving", "ball_to_cube_radial"] = (
-        "ball_to_cube_volume_preserving")  # default_torch.py:13
-    window: Literal["poly6", "none"] = "poly6"  # default_torch.py:15, 37-38
-    normalize: bool = False  # default_torch.py:52
-    # The convolution radius; None: the dataset's connectivity radius R, filled in by CConvSimulator. The authors'
-    # radius is half the filter extent 1.5 * 6 particle radii (default_torch.py:29), i.e. 2.25 particle spacings;
-    # our R is ~1.5 spacings (datasets/*.toml), so 1.5 * R would match theirs. R is the default: CConv then sees
-    # the same neighbourhood as GNS's graph, and the edges are those the pipeline already searches.
-    radius: float | None = None
-    # The authors' network runs in SI units on their data (particle radius 0.025 m, frames 1/50 s): velocities of
-    # order 1 m/s enter as features and the 1/128 output scale suits corrections in metres. Ours runs in those
-    # units too: lengths scaled so the convolution radius is theirs (0.5 * 1.5 * 6 * 0.025 m), time so a stored
-    # frame lasts their 1/50 s (default_torch.py:16). reference_radius = radius and reference_dt = 1 give raw units.
-    reference_radius: float = 0.1125
-    reference_dt: float = 1 / 50
-    correction_scale: float = 1 / 128  # default_torch.py:159
-    # "euler": v* = v + g, x* = x + v* (dt = 1), exact for our finite-difference velocities under gravity alone.
-    # "trapezoid": x* = x + (v + v*) / 2, the authors' code (default_torch.py:96-97), exact for their data's
-    # instantaneous velocities; on finite differences it lags free fall by g / 2, which the network must learn.
-    integrator: Literal["euler", "trapezoid"] = "euler"
-    gravity: list[float] | None = None  # per stored frame squared; None: metadata.gravity
-    # Fluid particles also get GNS's clipped wall distances (App. B.2) through the authors' `other_feats` input:
-    # most of our datasets have walls at the bounds and no wall particles, which CConv alone would not see.
-    # None: where metadata.walls says the bounds are walls.
-    wall_features: bool | None = None
-    neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
-    # Loss (train_network_torch.py:111-119, 134-145): 128 * mean over steps of the mean over fluid particles of
-    # exp(-n_i / 40) * (|x_pred - x_true|^2 + 1e-9)^(gamma / 2), distances in the reference units.
-    gamma: float = 0.5
-    neighbour_scale: float = 1 / 40
-    distance_epsilon: float = 1e-9
-    loss_scale: float = 128.0
-    unrolled_steps: int = 2  # window=3 (train_network_torch.py:57): two predicted steps, weighted 0.5 each
-    # Training (train_network_torch.py:19, 67-95; dataset_reader_physics.py:50-55): Adam(lr 1e-3, eps 1e-6),
-    # 16 scenes a batch, 50k iterations, lr factors piecewise constant after the boundaries; random rotations
-    # about the gravity axis as augmentation (the training loop's job).
-    learning_rate: float = 1e-3
-    adam_eps: float = 1e-6
-    batch_size: int = 16
-    train_steps: int = 50_000
-    lr_boundaries: list[int] = field(default_factory=lambda: [25_000, 30_000, 35_000, 40_000, 45_000])
-    lr_factors: list[float] = field(default_factory=lambda: [1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125])
-    random_rotation: bool = True
-
-    def validate(self) -> None:
-        def require(condition: bool, key: str, message: str) -> None:
-            if not condition:
-                raise ConfigError(f"cconv.{key}: {message}")
-
-        require(len(self.layer_channels) >= 1 and all(c > 0 for c in self.layer_channels), "layer_channels",
-                "at least one positive width")
-        require(self.filter_resolution >= 2, "filter_resolution", "must be >= 2")
-        require(self.radius is None or self.radius > 0, "radius", "must be > 0")
-        require(self.reference_radius > 0 and self.reference_dt > 0, "reference_radius", "units must be > 0")
-        require(self.unrolled_steps >= 1, "unrolled_steps", "must be >= 1")
-        require(len(self.lr_factors) == len(self.lr_boundaries) + 1, "lr_factors", "one more than lr_boundaries")
-
-
-def learning_rate(config: CConvConfig, step: int) -> float:
-    """The authors' piecewise-constant schedule (train_network_torch.py:67-90): base lr times the factor of the
-    last boundary that `step` has passed."""
-    passed = sum(step > b for b in config.lr_boundaries)
+def learning_rate(config: CConvConfig, step: int, steps: int) -> float:
+    """The authors' piecewise-constant schedule (train_network_torch.py:67-90), its boundaries fractions of the
+    run (`steps`): base lr times the factor of the last boundary that `step` has passed."""
+    passed = sum(step > fraction * steps for fraction in config.lr_boundaries)
     return config.learning_rate * config.lr_factors[passed]
 
 
@@ -307,10 +242,15 @@ class CConvSimulator(nn.Module):
     queries nor in the loss, and at the step they sit at their constant-velocity extrapolation x_t + v_t (exact
     for static and uniformly moving boundaries; callers overwrite them with the data afterwards)."""
 
+    architecture = "cconv"
     uses_edges = True
+    self_edges = False  # the authors' search leaves a particle out of its own neighbourhood
 
-    def __init__(self, config: CConvConfig, metadata: Metadata):
+    def __init__(self, config: CConvConfig, metadata: Metadata, input_sequence_length: int = 6):
         super().__init__()
+        # Rollouts start after this many ground-truth frames, as the GNS's do, so both are scored on the same
+        # steps; CConv itself reads only the last two (its velocity).
+        self.input_sequence_length = input_sequence_length
         gravity = config.gravity if config.gravity is not None else metadata.gravity
         if gravity is None:
             raise ConfigError("cconv.gravity: the dataset's metadata.json has no 'gravity'; set it in the config")
@@ -338,6 +278,10 @@ class CConvSimulator(nn.Module):
         fluid_in = 1 + self.dim + (2 * self.dim if config.wall_features else 0) + self.context_size
         self.network = CConvNetwork(self.dim, fluid_in, 1, config.layer_channels, config.filter_resolution,
                                     config.normalize)
+
+    @property
+    def neighbour_backend(self) -> str:
+        return self.config.neighbour_backend
 
     def build_graph(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
         return radius_graph(positions, self.radius, batch, backend=self.config.neighbour_backend, self_edges=False)

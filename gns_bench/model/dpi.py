@@ -22,8 +22,8 @@ nf_particle = nf_effect = 200. Node input: attributes [rigid, fluid, root] plus,
 particles, their state minus the cube's mean state, then the state [position, velocity], both normalised
 by the dataset's mean and std. Relation input: [attr_r, attr_s, state_r, state_s]: absolute states (the
 difference is computed but unused), so the model is not translation invariant.
-Heads: fluid particles get a normalised velocity from an MLP (200-200-3) of their effect; the cube gets
-one rigid motion from an MLP (200-200-7) of the mean effect of its particles: a quaternion (normalised)
+Heads (MLPs with two hidden layers of 200): fluid particles get a normalised velocity from their effect;
+the cube gets one rigid motion (7 numbers) from the mean effect of its particles: a quaternion (normalised)
 and a translation, turned into the velocities of its particles about their centroid: rigid by
 construction.
 Loss and training (train.py): MSE between predicted and true normalised next velocities of all
@@ -65,14 +65,16 @@ class DPIConfig:
     """Every choice of the model, with the authors' BoxBath values (train.py) unless said otherwise."""
 
     # The leaf-to-leaf radius as a multiple of the dataset's connectivity radius. Theirs is 0.08 in FleX
-    # units, 1.45 water spacings (restDistance 0.055: PyFleX bindings/scenes/yz_boxbath.h); ours is
-    # R = 1.5 spacings (datasets/boxbath.toml), and the GNS paper ran both models at R on the same data.
+    # units, 1.45 water spacings (restDistance 0.055: PyFleX bindings/scenes/yz_boxbath.h); our R is 1.5
+    # spacings (datasets/boxbath.toml), so 1.0 keeps their radius, counted in spacings, within 3%.
     radius_scale: float = 1.0
     pstep: int = 2  # propagation steps of the leaf-to-leaf stage
     root_pstep: int = 2  # of the root-to-root stage (their phases_dict["root_pstep"] = [[args.pstep]])
     roots_per_rigid_body: int = 8  # their root_num [[8]]: k-means clusters of the cube, one root each
     n_his: int = 0  # past velocities beyond the current one in the state (BoxBath: 0)
-    input_sequence_length: int = 2  # frames a window must hold: n_his + 2 (callers may give more)
+    # Frames in an input window: rollouts start after this many ground-truth frames, as the GNS's, so the
+    # models are scored on the same steps. DPI-Net reads only the last n_his + 2 (and the first, the rest shape).
+    input_sequence_length: int = 6
     nf_relation: int = 300
     nf_particle: int = 200
     nf_effect: int = 200
@@ -331,6 +333,8 @@ def rotation_matrices(params: torch.Tensor) -> torch.Tensor:
 class DPISimulator(nn.Module):
     """DPI-Net as a simulator: positions in, normalised next velocities out, p' = p + v (dt = 1 frame)."""
 
+    architecture = "dpi"
+
     def __init__(self, config: DPIConfig, metadata: Metadata):
         super().__init__()
         self.config = config
@@ -357,6 +361,18 @@ class DPISimulator(nn.Module):
     @property
     def uses_edges(self) -> bool:
         return True
+
+    @property
+    def input_sequence_length(self) -> int:
+        return self.config.input_sequence_length
+
+    @property
+    def neighbour_backend(self) -> str:
+        return self.config.neighbour_backend
+
+    @property
+    def self_edges(self) -> bool:
+        return self.config.self_edges
 
     def build_graph(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
         """Leaf-to-leaf edges [2, E] (sender, receiver) within the radius, each particle with itself too."""
@@ -420,10 +436,13 @@ class DPISimulator(nn.Module):
         return torch.einsum("kij,kj->ki", rotation[bodies.body], arm) - arm + translation[bodies.body]
 
     def forward(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
-                edge_index: torch.Tensor | None = None, rest_shape: torch.Tensor | None = None, *,
+                context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None,
+                bounds: torch.Tensor | None = None, rest_shape: torch.Tensor | None = None, *,
                 rigid_body: torch.Tensor | None = None, precision: str = "fp32") -> torch.Tensor:
-        """Normalised next velocities [N, D]: the network runs under `precision`, the rigid motion in the
-        window's dtype."""
+        """Normalised next velocities [N, D]; arguments as `predict_next_position`'s. The network runs under
+        `precision`, the rigid motion in the window's dtype."""
+        if context is not None:
+            raise ValueError("DPI-Net takes no global context; this dataset has one")
         rest_shape = window[:, 0] if rest_shape is None else rest_shape
         graph = self.graph(window, particle_type, batch, edge_index, rest_shape, rigid_body)
         attr, state = self.node_inputs(window, particle_type, graph)
@@ -448,11 +467,9 @@ class DPISimulator(nn.Module):
         shape. `bounds` is accepted for the simulator interface and unused: DPI-Net has no wall features,
         it knows the walls from absolute positions normalised over the training data's box.
         """
-        if context is not None:
-            raise ValueError("DPI-Net takes no global context; this dataset has one")
         rest_shape = window[:, 0] if rest_shape is None else rest_shape
-        normalised = self(window, particle_type, batch, edge_index, rest_shape, rigid_body=rigid_body,
-                          precision=precision)
+        normalised = self(window, particle_type, batch, context, edge_index, bounds, rest_shape,
+                          rigid_body=rigid_body, precision=precision)
         position = window[:, -1] + self.denormalise_velocity(normalised)
         if self.config.project_rigid:
             position = self.project_rigid_bodies(position, rest_shape, rigid_bodies(particle_type, batch, rigid_body))

@@ -182,6 +182,13 @@ class LearnedSimulator(nn.Module):
         return features.integrate(window, self.denormalise_acceleration(normalised.to(window.dtype)))
 
 
+# What training, evaluation and rollouts may call, whatever the architecture (`model.architecture`): the GNS
+# here, CConv (model/cconv.py). Each exposes `dim`, `radius`, `bounds`, `input_sequence_length`, `uses_edges`,
+# `neighbour_backend`, `self_edges`, `build_graph` and `predict_next_position(window, particle_type, batch,
+# context, edge_index, bounds, precision)`; the training loop asks for each one's own loss.
+Simulator = nn.Module
+
+
 def kinematic_mask(particle_type: torch.Tensor) -> torch.Tensor:
     """True for kinematic (boundary/obstacle) particles: in the graph, never predicted or in the loss."""
     return particle_type == KINEMATIC_PARTICLE_TYPE

@@ -28,7 +28,7 @@ import torch
 
 from gns_bench.config import TrainConfig
 from gns_bench.devices import machine_key
-from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.model.simulator import LearnedSimulator, Simulator
 
 WARM_UP_STEPS = 3  # not timed: allocation, autotuning kernels, and compilation for compiled candidates
 TIMED_STEPS = 8
@@ -66,17 +66,19 @@ def cache_path() -> Path:
     return Path(root) / "autotune.json"
 
 
-def cache_key(config: TrainConfig, simulator: LearnedSimulator, nodes: int, device: torch.device) -> str:
+def cache_key(config: TrainConfig, simulator: Simulator, nodes: int, device: torch.device) -> str:
     """The machine, the model's shape and the graph size (to a power of two) a choice holds for."""
-    model = simulator.config
-    shape = (f"M{model.message_passing_steps} L{model.latent_size} H{model.mlp_hidden_size}x{model.mlp_hidden_layers}"
-             f" D{simulator.dim} shared{int(model.shared_processor)} global{int(model.global_latent)}")
+    parameters = sum(p.numel() for p in simulator.parameters())
+    shape = f"{getattr(simulator, 'architecture', 'gns')} {parameters} parameters D{simulator.dim}"
+    if getattr(simulator, "architecture", "gns") == "gns":
+        model = simulator.config
+        shape += f" M{model.message_passing_steps} shared{int(model.shared_processor)} global{int(model.global_latent)}"
     size = 2 ** round(math.log2(max(nodes, 1)))
     return (f"{machine_key(device)} | {shape} | ~{size} nodes | batch {config.batch_size} | "
             f"{'+'.join(label(p, c) for p, c in candidates(config))}")
 
 
-def choose(config: TrainConfig, simulator: LearnedSimulator, step_fn: Callable[[LearnedSimulator, str], None],
+def choose(config: TrainConfig, simulator: Simulator, step_fn: Callable[[LearnedSimulator, str], None],
            nodes: int, device: torch.device, steps_left: int, *, use_cache: bool = True) -> SpeedSettings:
     """The settings to train with. Nothing auto: the config's own. Otherwise the cached choice for this
     machine, model and graph size, or a probe: `step_fn(model, precision)` runs one training step of `model`

@@ -12,7 +12,7 @@ import torch
 from gns_bench.config import Config, resolve_for_dataset, saved_config
 from gns_bench.data.format import Metadata
 from gns_bench.devices import resolve_device
-from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.model.simulator import LearnedSimulator, Simulator
 
 CHECKPOINT_NAME = "checkpoint.pt"
 FORMAT_VERSION = 1
@@ -45,9 +45,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return state
 
 
-def build_simulator(config: Config, metadata: Metadata) -> LearnedSimulator:
-    """A fresh simulator for `config` (resolved against `metadata` if it is not yet) on that dataset."""
+def build_simulator(config: Config, metadata: Metadata) -> Simulator:
+    """A fresh simulator of `config.model.architecture` (the config resolved against `metadata` if it is not
+    yet) on that dataset: the paper's GNS, or a baseline it is compared with (Sec. 5.5)."""
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
+    if config.model.architecture == "cconv":
+        from gns_bench.model.cconv import CConvSimulator
+
+        return CConvSimulator(config.cconv, metadata, input_sequence_length=config.model.input_sequence_length)
     return LearnedSimulator(config.model, metadata, config.train.noise_std)
 
 

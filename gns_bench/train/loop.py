@@ -23,14 +23,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from gns_bench.config import Config, TrainConfig, resolve_for_dataset, saved_config
+from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.devices import load_average, resolve_device, set_threads, usable_cores
 from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
-from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
+from gns_bench.model.simulator import LearnedSimulator, Simulator, kinematic_mask
 from gns_bench.train import autotune, distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 
@@ -57,12 +57,40 @@ def learning_rate(step: int, config: TrainConfig) -> float:
     return (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
 
 
-def adam(parameters: Iterable[torch.nn.Parameter], lr: float) -> torch.optim.Adam:
-    """Adam as the paper uses it; the fused kernel where the device has one (the same update, measured
-    6x faster than the per-tensor loop on the bench model's parameters on CPU)."""
+def schedule(config: Config) -> Callable[[int], float]:
+    """The learning rate by step: the paper's exponential decay (`train.*`), or, for the CConv baseline, its
+    authors' piecewise schedule over the run (`cconv.*`)."""
+    if config.model.architecture == "cconv":
+        from gns_bench.model.cconv import learning_rate as cconv_learning_rate
+
+        return lambda step: cconv_learning_rate(config.cconv, step, config.train.steps)
+    return lambda step: learning_rate(step, config.train)
+
+
+def adam(parameters: Iterable[torch.nn.Parameter], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
+    """Adam as the paper uses it (eps 1e-8, TensorFlow's and PyTorch's default; CConv's authors use 1e-6); the
+    fused kernel where the device has one (the same update, measured 6x faster than the per-tensor loop on the
+    bench model's parameters on CPU)."""
     parameters = list(parameters)
     fused = all(p.device.type in ("cpu", "cuda") for p in parameters)
-    return torch.optim.Adam(parameters, lr=lr, fused=fused)
+    return torch.optim.Adam(parameters, lr=lr, eps=eps, fused=fused)
+
+
+def unrolled_steps(config: Config) -> int:
+    """Frames after each training window the architecture's loss needs (CConv's authors unroll 2 steps)."""
+    return config.cconv.unrolled_steps if config.model.architecture == "cconv" else 1
+
+
+def batch_loss(simulator: Simulator, batch: GraphBatch, position_noise: torch.Tensor, config: Config,
+               model: torch.nn.Module | None = None, num_moving: int | None = None, world_size: int = 1,
+               precision: str = "fp32") -> torch.Tensor:
+    """The architecture's own training loss on a batch: the GNS's noisy one-step loss (`training_loss`), or
+    CConv's unrolled one (its authors' train it without noise)."""
+    if getattr(simulator, "architecture", "gns") == "cconv":
+        window = torch.cat([batch.window, batch.future if batch.future is not None else batch.target[:, None]], 1)
+        return simulator.unrolled_loss(window, batch.particle_type, batch.batch, batch.context, precision=precision)
+    return training_loss(simulator, batch, position_noise, config.train.position_correction, model, num_moving,
+                         world_size, precision)
 
 
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
@@ -159,11 +187,12 @@ class StepClock:
         return counted
 
 
-def _speed_settings(tc: TrainConfig, simulator: LearnedSimulator, sampler: WindowSampler, device: torch.device,
+def _speed_settings(config: Config, simulator: Simulator, sampler: WindowSampler, device: torch.device,
                     world_size: int, steps_left: int) -> autotune.SpeedSettings:
     """The precision and compile setting to train with: the config's, or for "auto" the fastest on this
     machine (`autotune.choose`). Under data parallelism every rank must agree without a probe of its own:
     "auto" trains in fp32, uncompiled."""
+    tc = config.train
     if world_size > 1:
         return autotune.SpeedSettings("fp32" if tc.precision == "auto" else tc.precision,
                                       False if tc.compile == "auto" else bool(tc.compile))
@@ -173,7 +202,7 @@ def _speed_settings(tc: TrainConfig, simulator: LearnedSimulator, sampler: Windo
 
     def probe_step(model: LearnedSimulator, precision: str) -> None:
         optimiser = optimisers.setdefault(id(model), adam(model.parameters(), 0.0))  # lr 0: timing only
-        loss = training_loss(model, batch, noise, tc.position_correction, model, num_moving, 1, precision)
+        loss = batch_loss(model, batch, noise, config, model, num_moving, 1, precision)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
@@ -223,11 +252,16 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
     if trajectories is None:
         trajectories = load_training_split(config, dataset_dir, metadata)
-    sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed)
+    sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed, unrolled_steps(config))
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)
-    optimiser = adam(simulator.parameters(), learning_rate(0, tc))
+    rate = schedule(config)
+    if config.model.architecture != "gns" and group.world_size > 1:
+        raise ConfigError("data-parallel training (torchrun) covers the GNS only, not model.architecture = "
+                          f"{config.model.architecture!r}")
+    optimiser = adam(simulator.parameters(), rate(0),
+                     config.cconv.adam_eps if config.model.architecture == "cconv" else 1e-8)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
@@ -244,7 +278,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
     if speed is None:
-        speed = _speed_settings(tc, simulator, sampler, device, group.world_size, tc.steps - step)
+        speed = _speed_settings(config, simulator, sampler, device, group.world_size, tc.steps - step)
     if speed.compile:
         simulator.network.compile(dynamic=True)  # in place: parameter names and checkpoints unchanged
     model = group.wrap(simulator)
@@ -288,13 +322,13 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             if tc.max_wall_seconds is not None and clock.total >= tc.max_wall_seconds:
                 break
             step_started = time.perf_counter()
-            lr = learning_rate(step, tc)
+            lr = rate(step)
             for param_group in optimiser.param_groups:
                 param_group["lr"] = lr
             batch, noise, num_moving = step_inputs(sampler, step, tc.batch_size, tc.noise_std, group.rank,
                                                    group.world_size)
-            loss = training_loss(simulator, batch.to(device), noise.to(device), tc.position_correction, model,
-                                 num_moving, group.world_size, speed.precision)
+            loss = batch_loss(simulator, batch.to(device), noise.to(device), config, model, num_moving,
+                              group.world_size, speed.precision)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

@@ -191,7 +191,7 @@ def test_config_resolves_dataset_defaults() -> None:
     assert sim.radius == 0.1 and sim.config.radius == 0.1 and sim.config.wall_features is True
     assert sim.config.gravity == GRAVITY and sim.uses_edges and sim.dim == 2
     assert sim.bounds.shape == (2, 2)
-    assert [learning_rate(sim.config, s) for s in (0, 25_000, 25_001, 45_001)] == [1e-3, 1e-3, 5e-4, 3.125e-5]
+    assert [learning_rate(sim.config, s, 50_000) for s in (0, 25_000, 25_001, 45_001)] == [1e-3, 1e-3, 5e-4, 3.125e-5]
     edges = sim.build_graph(scene()[0][:, -1])
     assert edges.shape[0] == 2 and (edges[0] != edges[1]).all()
 

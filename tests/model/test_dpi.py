@@ -23,6 +23,16 @@ TINY = dict(nf_relation=16, nf_particle=16, nf_effect=16, roots_per_rigid_body=2
 RIGID, WATER, KINEMATIC = 0, 5, 3
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models gain nothing from threads, and with another job on the cores they were measured 100x
+    slower with two (OpenMP workers waiting on each other)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def metadata(dim: int) -> Metadata:
     return Metadata(bounds=[[0.0, 1.0]] * dim, sequence_length=10, default_connectivity_radius=0.15, dim=dim, dt=1.0,
                     vel_mean=[0.0] * dim, vel_std=[1e-2] * dim, acc_mean=[0.0] * dim, acc_std=[1e-3] * dim,
@@ -154,11 +164,15 @@ def test_a_cube_gets_eight_roots_of_its_octants_and_all_root_pairs() -> None:
 def test_graph_relations_follow_the_authors() -> None:
     sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
     window, types = toy_window(3)
+    window[types == WATER] -= 0.05  # some water within reach of the block
     graph = sim.graph(window, types, None, None, window[:, 0])
     senders, receivers = graph.leaf_edges
     rigid = types == RIGID
     assert not (rigid[senders] & rigid[receivers]).any()  # inside the body only through the hierarchy
-    assert (rigid[senders] & ~rigid[receivers]).any() or True  # water may feel the block when close
+    water_near_block = (torch.cdist(window[rigid, -1], window[types == WATER, -1]) <= sim.radius).sum()
+    assert water_near_block > 0
+    assert (rigid[senders] & (types[receivers] == WATER)).sum() == water_near_block  # block -> water
+    assert (rigid[receivers] & (types[senders] == WATER)).sum() == water_near_block  # water -> block
     water = (types == WATER).nonzero()[:, 0]
     self_loops = senders[senders == receivers]
     assert set(water.tolist()) <= set(self_loops.tolist())  # their ball query finds the particle itself
@@ -236,7 +250,7 @@ def test_training_loss_decreases() -> None:
     all_types = types.repeat(len(starts))
     batch = torch.arange(len(starts)).repeat_interleave(len(types))
     noise = torch.zeros_like(window)
-    optimiser = torch.optim.Adam(sim.parameters(), lr=1e-3)
+    optimiser = torch.optim.Adam(sim.parameters(), lr=3e-3)
     losses = []
     for _ in range(50):
         loss = sim.training_loss(window, target, all_types, batch, noise)
@@ -245,7 +259,7 @@ def test_training_loss_decreases() -> None:
         optimiser.step()
         losses.append(loss.item())
     assert all(math.isfinite(v) for v in losses)
-    assert losses[-1] < 0.3 * losses[0], losses[::10]
+    assert losses[-1] < 0.4 * losses[0], losses[::10]
 
 
 def test_training_loss_ignores_kinematic_particles() -> None:
@@ -289,10 +303,11 @@ def test_defaults_are_the_authors_boxbath_settings() -> None:
     assert (c.learning_rate, c.adam_beta1, c.batch_size, c.forward_times) == (1e-4, 0.9, 1, 2)
     sim = DPISimulator(c, metadata(3))
     assert sim.radius == pytest.approx(0.15) and sim.uses_edges and sim.bounds.shape == (3, 2)
-    assert sim.network.uses_edges
+    assert (sim.architecture, sim.input_sequence_length, sim.neighbour_backend, sim.self_edges) == (
+        "dpi", 6, "scipy", True)
 
 
-@pytest.mark.parametrize("bad", [dict(rigid_head="quaternion"), dict(pstep=0), dict(n_his=1),
+@pytest.mark.parametrize("bad", [dict(rigid_head="quaternion"), dict(pstep=0), dict(n_his=5),
                                  dict(neighbour_backend="brute"), dict(radius_scale=0.0)])
 def test_bad_configs_are_refused(bad: dict) -> None:
     with pytest.raises(ConfigError):
