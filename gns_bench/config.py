@@ -192,6 +192,40 @@ class CConvConfig:
         require(all(0 < b < 1 for b in self.lr_boundaries), "lr_boundaries", "fractions of the run, in (0, 1)")
 
 
+@dataclass
+class DPIConfig:
+    """Every choice of the model, with the authors' BoxBath values (train.py) unless said otherwise."""
+
+    # The leaf-to-leaf radius as a multiple of the dataset's connectivity radius. Theirs is 0.08 in FleX
+    # units, 1.45 water spacings (restDistance 0.055: PyFleX bindings/scenes/yz_boxbath.h); our R is 1.5
+    # spacings (datasets/boxbath.toml), so 1.0 keeps their radius, counted in spacings, within 3%.
+    radius_scale: float = 1.0
+    pstep: int = 2  # propagation steps of the leaf-to-leaf stage
+    root_pstep: int = 2  # of the root-to-root stage (their phases_dict["root_pstep"] = [[args.pstep]])
+    roots_per_rigid_body: int = 8  # their root_num [[8]]: k-means clusters of the cube, one root each
+    n_his: int = 0  # past velocities beyond the current one in the state (BoxBath: 0)
+    nf_relation: int = 300
+    nf_particle: int = 200
+    nf_effect: int = 200
+    # "transform": theirs, one rigid motion per body from the mean effect of its particles; "velocity":
+    # rigid particles get the particle head's velocities and only the projection makes them rigid.
+    rigid_head: Literal["transform", "velocity"] = "transform"
+    project_rigid: bool = True  # ours: rigid_projection of every prediction onto the rest shape
+    neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
+    self_edges: bool = True  # their ball query returns each fluid particle as its own neighbour
+    # Their training is set with `train.*` (one training loop): Adam at 1e-4 (the default), batch 1 with the
+    # gradients of 2 samples averaged (`train.batch_size = 2` averages the same two), no input noise
+    # (`train.noise_std = 0`). Their ReduceLROnPlateau on the validation loss is not done here: the decay is
+    # the GNS's exponential one. The window length is `model.input_sequence_length` (DPI reads its last
+    # n_his + 2 frames and rollouts start where the GNS's do).
+
+    def validate(self) -> None:
+        for key in ("pstep", "root_pstep", "roots_per_rigid_body", "nf_relation", "nf_particle", "nf_effect"):
+            _require(getattr(self, key) >= 1, f"dpi.{key}", "must be a positive integer")
+        _require(self.n_his >= 0, "dpi.n_his", "must be >= 0")
+        _require(self.radius_scale > 0, "dpi.radius_scale", "must be > 0")
+
+
 MonitorName = Literal["non_finite", "out_of_bounds", "energy_blowup", "density_collapse"]
 
 
@@ -275,6 +309,7 @@ class Config:
     eval: EvalConfig = field(default_factory=EvalConfig)
     stress: StressConfig = field(default_factory=StressConfig)
     cconv: CConvConfig = field(default_factory=CConvConfig)  # read when model.architecture = "cconv"
+    dpi: DPIConfig = field(default_factory=DPIConfig)  # read when model.architecture = "dpi"
 
     def validate(self) -> Config:
         self.model.validate()
@@ -282,6 +317,7 @@ class Config:
         self.eval.validate()
         self.stress.validate()
         self.cconv.validate()
+        self.dpi.validate()
         return self
 
     def to_dict(self) -> dict[str, dict[str, Any]]:

@@ -182,7 +182,7 @@ def test_the_summary_prints_each_metric_beside_its_baseline_over_the_same_steps(
     assert "over 70 steps" in lines[1] and "stopped" in lines[1] and "0.07104" not in "".join(lines)
 
 
-@pytest.mark.parametrize("architecture", ["cconv"])
+@pytest.mark.parametrize("architecture", ["cconv", "dpi"])
 def test_a_baseline_architecture_trains_and_evaluates_end_to_end(architecture: str, tiny_dataset: Path,
                                                                 tmp_path: Path) -> None:
     """`model.architecture` switches the learned simulator (Sec. 5.5 baselines) inside the same training loop,

@@ -40,16 +40,15 @@ Other choices are documented on `DPIConfig` and where they happen.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from gns_bench.config import ConfigError
+from gns_bench.config import ConfigError, DPIConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, NUM_PARTICLE_TYPES, Metadata
-from gns_bench.model.neighbours import BACKENDS, radius_graph
+from gns_bench.model.neighbours import radius_graph
 from gns_bench.model.noise import noisy_training_pair
 from gns_bench.model.precision import autocast
 
@@ -58,61 +57,6 @@ RIGID_HEADS = ("transform", "velocity")
 STAGES = ("leaf_to_leaf", "leaf_to_root", "root_to_root", "root_to_leaf")
 KMEANS_ITERATIONS = 30
 KMEANS_STARTS = 16
-
-
-@dataclass
-class DPIConfig:
-    """Every choice of the model, with the authors' BoxBath values (train.py) unless said otherwise."""
-
-    # The leaf-to-leaf radius as a multiple of the dataset's connectivity radius. Theirs is 0.08 in FleX
-    # units, 1.45 water spacings (restDistance 0.055: PyFleX bindings/scenes/yz_boxbath.h); our R is 1.5
-    # spacings (datasets/boxbath.toml), so 1.0 keeps their radius, counted in spacings, within 3%.
-    radius_scale: float = 1.0
-    pstep: int = 2  # propagation steps of the leaf-to-leaf stage
-    root_pstep: int = 2  # of the root-to-root stage (their phases_dict["root_pstep"] = [[args.pstep]])
-    roots_per_rigid_body: int = 8  # their root_num [[8]]: k-means clusters of the cube, one root each
-    n_his: int = 0  # past velocities beyond the current one in the state (BoxBath: 0)
-    # Frames in an input window: rollouts start after this many ground-truth frames, as the GNS's, so the
-    # models are scored on the same steps. DPI-Net reads only the last n_his + 2 (and the first, the rest shape).
-    input_sequence_length: int = 6
-    nf_relation: int = 300
-    nf_particle: int = 200
-    nf_effect: int = 200
-    # "transform": theirs, one rigid motion per body from the mean effect of its particles; "velocity":
-    # rigid particles get the particle head's velocities and only the projection makes them rigid.
-    rigid_head: str = "transform"
-    project_rigid: bool = True  # ours: rigid_projection of every prediction onto the rest shape
-    learning_rate: float = 1e-4
-    adam_beta1: float = 0.9
-    batch_size: int = 1
-    forward_times: int = 2  # gradients of this many batches are averaged per Adam step
-    lr_plateau_factor: float = 0.8  # ReduceLROnPlateau on the validation loss, once per epoch
-    lr_plateau_patience: int = 3
-    noise_std: float = 0.0  # they train without input noise
-    neighbour_backend: str = "scipy"
-    self_edges: bool = True  # their ball query returns each fluid particle as its own neighbour
-
-    def __post_init__(self) -> None:
-        def fail(key: str, expected: str) -> None:
-            raise ConfigError(f"DPIConfig.{key}: expected {expected}, got {getattr(self, key)!r}")
-
-        for key in ("pstep", "root_pstep", "roots_per_rigid_body", "nf_relation", "nf_particle", "nf_effect",
-                    "batch_size", "forward_times"):
-            if not (isinstance(getattr(self, key), int) and getattr(self, key) >= 1):
-                fail(key, "a positive integer")
-        if not (isinstance(self.n_his, int) and self.n_his >= 0):
-            fail("n_his", "a non-negative integer")
-        if not (isinstance(self.input_sequence_length, int) and self.input_sequence_length >= self.n_his + 2):
-            fail("input_sequence_length", f"an integer >= n_his + 2 = {self.n_his + 2}")
-        for key in ("radius_scale", "learning_rate", "lr_plateau_factor"):
-            if not getattr(self, key) > 0:
-                fail(key, "a positive number")
-        if not 0 <= self.noise_std:
-            fail("noise_std", "a non-negative number")
-        if self.rigid_head not in RIGID_HEADS:
-            fail("rigid_head", f"one of {RIGID_HEADS}")
-        if self.neighbour_backend not in BACKENDS:
-            fail("neighbour_backend", f"one of {BACKENDS}")
 
 
 def rigid_projection(predicted: torch.Tensor, rest_shape: torch.Tensor) -> torch.Tensor:
@@ -335,9 +279,14 @@ class DPISimulator(nn.Module):
 
     architecture = "dpi"
 
-    def __init__(self, config: DPIConfig, metadata: Metadata):
+    def __init__(self, config: DPIConfig, metadata: Metadata, input_sequence_length: int = 6):
         super().__init__()
+        config.validate()
         self.config = config
+        if input_sequence_length < config.n_his + 2:
+            raise ConfigError(f"model.input_sequence_length: DPI reads n_his + 2 = {config.n_his + 2} frames, got "
+                              f"{input_sequence_length}")
+        self._input_sequence_length = input_sequence_length
         self.dim = metadata.dim
         self.radius = float(config.radius_scale * metadata.default_connectivity_radius)
 
@@ -364,7 +313,7 @@ class DPISimulator(nn.Module):
 
     @property
     def input_sequence_length(self) -> int:
-        return self.config.input_sequence_length
+        return self._input_sequence_length
 
     @property
     def neighbour_backend(self) -> str:

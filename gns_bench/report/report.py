@@ -157,8 +157,36 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
                      for m, _ in figures.PANELS]
             cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—"]
             lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
-        lines += ["", verdict_line(axis, values, rows, reference), ""] if compare else [""]
+        judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
+        lines += ["", verdict_line(axis, values, rows, reference), ""] if judged else [""]
     return lines
+
+
+def baseline_section(sweep: SweepSpec, tier: str, rows: list[RunRow], reports_root: Path, compare: bool) -> list[str]:
+    """A baseline beside the GNS on the same domain and tier (the domain sweep's runs), ours and the paper's
+    (Sec. 5.5, App. D.1): rollout MSE by the paper's definition, the ratio baseline / GNS for each."""
+    architecture = rows[0].planned.config.model.architecture if rows else "?"
+    domain = next((s for s in domain_sweeps() if s.domain == sweep.domain), None)
+    gns_rows = collect(domain, tier, reports_root) if domain else []
+    ref = domain_reference(sweep.domain)
+    best = min((r for r in rows if r.ok), key=lambda r: r.metric("rollout_mse"), default=None)
+    gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
+    ours = best.metric("rollout_mse") if best else math.nan
+    paper_baseline = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
+    header = "| | GNS rollout MSE | baseline rollout MSE | baseline / GNS |"
+    rows_out = [["ours (" + tier + ")", fmt(gns), fmt(ours) + (f" (`{best.planned.name}`, its best)" if best else ""),
+                 (f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare else "—")]]
+    if ref:
+        rows_out.append(["paper", fmt(ref.rollout_mse), fmt(paper_baseline) if paper_baseline else "—",
+                         f"{ratio(paper_baseline, ref.rollout_mse)}" if paper_baseline else "—"])
+    return [f"## {architecture} beside the GNS (Sec. 5.5)", "",
+            f"The GNS is the domain sweep's run at this tier ({_link_report(domain.name if domain else '?', tier)}); "
+            "the baseline's value is its best run here, as the paper reports CConv's best over its sweeps "
+            "(read off the paper's bar chart: approximate).", "", *_table(header, rows_out), ""]
+
+
+def _link_report(name: str, tier: str) -> str:
+    return f"[{name}/{tier}](../../{name}/{tier}/README.md)"
 
 
 def verdict_line(axis: str, values: list, rows: list[RunRow], reference: dict) -> str:
@@ -301,6 +329,8 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
     elif sweep.candidates:
         lines += candidates_section(sweep, tier, rows, out_dir, compare)
     else:
+        if sweep.kind == "baseline":
+            lines += baseline_section(sweep, tier, rows, out_dir.parent.parent, compare)
         lines += ablation_section(sweep, rows, out_dir, compare)
     rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir / SUMMARY_FILE))
     lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir), *rollouts]

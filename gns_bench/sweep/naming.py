@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-SWEEP_KINDS = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study"}
+SWEEP_KINDS = {"domains": "domain", "ablations": "ablation", "stress": "stress", "studies": "study",
+               "baselines": "baseline"}
 NOT_SWEEPS = ("tiers.toml", "campaigns")  # the shared tier budgets, and the folder of campaign files
 
 

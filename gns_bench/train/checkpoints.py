@@ -53,6 +53,10 @@ def build_simulator(config: Config, metadata: Metadata) -> Simulator:
         from gns_bench.model.cconv import CConvSimulator
 
         return CConvSimulator(config.cconv, metadata, input_sequence_length=config.model.input_sequence_length)
+    if config.model.architecture == "dpi":
+        from gns_bench.model.dpi import DPISimulator
+
+        return DPISimulator(config.dpi, metadata, input_sequence_length=config.model.input_sequence_length)
     return LearnedSimulator(config.model, metadata, config.train.noise_std)
 
 
