@@ -183,9 +183,10 @@ class LearnedSimulator(nn.Module):
 
 
 # What training, evaluation and rollouts may call, whatever the architecture (`model.architecture`): the GNS
-# here, CConv (model/cconv.py), DPI-Net (model/dpi.py). Each exposes `dim`, `radius`, `bounds`, `input_sequence_length`, `uses_edges`,
-# `neighbour_backend`, `self_edges`, `build_graph` and `predict_next_position(window, particle_type, batch,
-# context, edge_index, bounds, precision)`; the training loop asks for each one's own loss.
+# here, CConv (model/cconv.py), DPI-Net (model/dpi.py). Each exposes `dim`, `radius`, `bounds`,
+# `input_sequence_length`, `uses_edges`, `neighbour_backend`, `self_edges`, `build_graph` and
+# `predict_next_position(window, particle_type, batch, context, edge_index, bounds, precision)`; the training
+# loop asks for each one's own loss (train/loop.py `batch_loss`).
 Simulator = nn.Module
 
 
