@@ -260,8 +260,9 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="compile a sweep's MLflow runs into reports/<sweep>/<tier>/ (markdown, PNG)")
     p.add_argument("sweep", help="sweep file or name (e.g. sweeps/ablations/noise_std.toml, ablation-noise_std), "
                                  "'domains' for the table across all domain sweeps, 'stability' for the "
-                                 "stress sweeps, 'index' for the front page (reports/README.md: every claim of "
-                                 "the paper), or 'all': every sweep with runs at the tier, then those three")
+                                 "stress sweeps, 'baselines' for GNS against CConv and DPI-Net, 'index' for the front "
+                                 "page (reports/README.md: every claim of the paper), or 'all': every sweep with "
+                                 "runs at the tier, then those four")
     p.add_argument("--tier", default="smoke", choices=TIERS, help="which tier's runs to compile")
     p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
 

@@ -16,6 +16,7 @@ from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import figures
+from gns_bench.report.baselines import write_baselines_report
 from gns_bench.report.cells import (
     MISSING,
     against_cv,
@@ -362,6 +363,8 @@ def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Pa
     reports_root = Path(reports_root)
     if str(sweep) == "index":
         return write_index(reports_root)
+    if str(sweep) == "baselines":
+        return write_baselines_report(tier, reports_root / "baselines" / tier, reports_root)
     if str(sweep) == "domains":
         return write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier)
     if str(sweep) == "stability":
@@ -382,5 +385,6 @@ def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
             written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
     written.append(write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier))
     written.append(write_stability_report(tier, reports_root / "stability" / tier))
+    written.append(write_baselines_report(tier, reports_root / "baselines" / tier, reports_root))
     written.append(write_index(reports_root))
     return written

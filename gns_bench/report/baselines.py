@@ -1,0 +1,129 @@
+"""The baselines report, `reports/baselines/<tier>/README.md`: the paper's comparison of GNS with CConv and
+DPI-Net (Sec. 5.5, App. D.1) reproduced. Per comparison domain, the GNS (the domain sweep's run at the tier)
+beside the baseline's best run (`sweeps/baselines/`), ours and the paper's, with the ratio baseline / GNS for
+each; on BOXBATH the cube's rigidity drift for every model against the ground truth, and the same test rollout
+drawn by each model (the failure modes the paper shows: the cube losing its shape, the goop blowing apart)."""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
+from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
+from gns_bench.evaluate.result import RolloutResult  # noqa: E402
+from gns_bench.report import figures  # noqa: E402
+from gns_bench.report.cells import budget_statement, definitions_section, fmt, ratio, run_ids_cell  # noqa: E402
+from gns_bench.report.collect import RunRow, collect, domain_sweeps, load_rollouts, mean_std  # noqa: E402
+from gns_bench.report.reference import domain_reference  # noqa: E402
+from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
+
+HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | GNS (paper) | CConv (paper) "
+          "| CConv / GNS (paper) | MLflow runs |")
+DPI = 80
+
+
+def baseline_sweeps() -> list[SweepSpec]:
+    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "baseline"]
+
+
+def architecture_of(sweep: SweepSpec) -> str:
+    return sweep.plan("smoke")[0].config.model.architecture
+
+
+def _best(rows: list[RunRow]) -> RunRow | None:
+    done = [r for r in rows if r.ok and math.isfinite(r.metric("rollout_mse"))]
+    return min(done, key=lambda r: r.metric("rollout_mse"), default=None)
+
+
+def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow], compare: bool) -> list[str]:
+    ref = domain_reference(sweep.domain)
+    gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
+    best = _best(rows)
+    ours = best.metric("rollout_mse") if best else math.nan
+    architecture = architecture_of(sweep)
+    paper_cconv = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
+    return [f"{ref.name if ref else sweep.domain} ({architecture})", fmt(gns),
+            fmt(ours) + (f" (`{best.planned.name}`)" if best else ""),
+            f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare and best and gns > 0 else "—",
+            fmt(ref.rollout_mse) if ref else "—", fmt(paper_cconv) if paper_cconv else "—",
+            ratio(paper_cconv, ref.rollout_mse) if paper_cconv and ref else "—",
+            run_ids_cell([r for r in [*gns_rows, *rows] if r.run_id])]
+
+
+def _rollouts(row: RunRow | None, workdir: Path) -> list[RolloutResult]:
+    if row is None:
+        return []
+    return load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", workdir)
+
+
+def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> Path | None:
+    """BOXBATH: the cube's drift (mean over test trajectories) for each model and the ground truth."""
+    fig, ax = plt.subplots(figsize=(5.6, 3.6), layout="constrained")
+    drawn, truth = False, None
+    for name, rollouts in models.items():
+        curves = [c for r in rollouts if (c := figures.rigidity_curves(r, RIGID_PARTICLE_TYPE)) is not None]
+        if not curves:
+            continue
+        length = min(len(c[0]) for c in curves)
+        model = np.nanmean([c[0][:length] for c in curves], axis=0)
+        ax.plot(np.arange(length), model, color=config_colour(name), label=name)
+        truth = truth if truth is not None else np.nanmean([c[1][:length] for c in curves], axis=0)
+        drawn = True
+    if not drawn:
+        plt.close(fig)
+        return None
+    ax.plot(np.arange(len(truth)), truth, color="k", ls="--", label="ground truth")
+    ax.set_xlabel(STEP_LABEL)
+    ax.set_ylabel("rigidity drift (relative)")
+    ax.set_title("BOXBATH: the cube's shape over a rollout (0: rigid)", fontsize=9)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None = None) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    reports_root = reports_root or out_dir.parent.parent
+    domains = {s.domain: s for s in domain_sweeps()}
+    compare = tier != "smoke"
+    collected = [(s, collect(s, tier, reports_root), collect(domains[s.domain], tier, reports_root))
+                 for s in baseline_sweeps()]
+    every = [r for _, rows, gns in collected for r in [*rows, *gns]]
+    lines = [f"# Baselines ({tier} tier)", "", budget_statement(every, tier), "",
+             "The paper compares the GNS with continuous convolutions (CConv, Ummenhofer et al. 2020) on six domains "
+             "and with DPI-Net (Li et al. 2019) on BOXBATH (Sec. 5.5, App. D.1). Here each baseline's best run "
+             "(`sweeps/baselines/`) stands beside the GNS run of its domain sweep at the same tier; the paper's "
+             "CConv figures are read off its bar chart (approximate).", "", *definitions_section(),
+             "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
+             *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), ""]
+    boxbath = [(s, rows, gns) for s, rows, gns in collected if s.domain == "boxbath"]
+    if boxbath:
+        with tempfile.TemporaryDirectory() as tmp:
+            models = {"GNS": _rollouts(_best(boxbath[0][2]), Path(tmp) / "gns")}
+            for sweep, rows, _ in boxbath:
+                models[architecture_of(sweep)] = _rollouts(_best(rows), Path(tmp) / sweep.name)
+        figure = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
+        if figure is not None:
+            lines += ["## BOXBATH: keeping the cube rigid", "",
+                      "The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
+                      "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
+                      "built in (a rigid projection and root nodes), CConv neither.", "", f"![rigidity]({figure.name})",
+                      ""]
+            for name, rollouts in models.items():
+                if rollouts and rollouts[0].predicted.shape[0]:
+                    png = figures.rollout_png(rollouts[0], out_dir / f"boxbath_{name.lower()}.png",
+                                              f"{name}: BOXBATH test trajectory 0")
+                    lines += [f"![{name} on BOXBATH]({png.name})", ""]
+    path = out_dir / "README.md"
+    path.write_text("\n".join(lines).rstrip() + "\n")
+    return path

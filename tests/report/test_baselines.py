@@ -1,0 +1,45 @@
+"""The baselines report: each baseline's best run beside the GNS run of its domain, the ratio printed with the
+two numbers it divides."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from gns_bench.report import baselines
+from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
+
+MODEL = "[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 8\nmessage_passing_steps = 1\n"
+
+
+def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    root = tmp_path / "sweeps"
+    for folder in ("domains", "baselines"):
+        (root / folder).mkdir(parents=True)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", root / "tiers.toml")
+    (root / "domains" / "tiny.toml").write_text('description = "tiny"\ndomain = "tiny"\n\n' + MODEL)
+    (root / "baselines" / "cconv-tiny.toml").write_text(
+        'description = "CConv on tiny"\ndomain = "tiny"\nconfig.model = { architecture = "cconv" }\n'
+        'default = { "train.noise_std" = 0.0 }\n\n[grid]\n"train.noise_std" = [0.0, 3e-4]\n')
+    domain, baseline = load_sweep(root / "domains" / "tiny.toml"), load_sweep(root / "baselines" / "cconv-tiny.toml")
+    for sweep in (domain, baseline):
+        outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+        assert all(o.status == "FINISHED" for o in outcomes), [o.error for o in outcomes]
+    monkeypatch.setattr(baselines, "baseline_sweeps", lambda: [baseline])
+    monkeypatch.setattr(baselines, "domain_sweeps", lambda: [domain])
+    text = baselines.write_baselines_report("smoke", tmp_path / "reports" / "baselines" / "smoke").read_text()
+    (row,) = [line for line in text.splitlines() if line.startswith("| tiny (cconv) |")]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    rows = baselines.collect(baseline, "smoke", tmp_path / "reports")
+    best = min(rows, key=lambda r: r.metric("rollout_mse"))
+    assert cells[2] == f"{best.metric('rollout_mse'):.3g} (`{best.planned.name}`)"  # the best of its sweep
+    assert cells[3] == "—" and text.splitlines()[2].startswith("**Smoke tier")  # smoke compares nothing
+    gns = baselines.collect(domain, "smoke", tmp_path / "reports")[0].metric("rollout_mse")
+    compared = baselines.comparison_row(baseline, rows, baselines.collect(domain, "smoke", tmp_path / "reports"),
+                                        compare=True)
+    ratio = best.metric("rollout_mse") / gns
+    assert compared[3] == f"{ratio:.3g}x ({best.metric('rollout_mse'):.3g} / {gns:.3g})"
