@@ -286,7 +286,10 @@ class DPISimulator(nn.Module):
         if input_sequence_length < config.n_his + 2:
             raise ConfigError(f"model.input_sequence_length: DPI reads n_his + 2 = {config.n_his + 2} frames, got "
                               f"{input_sequence_length}")
-        self._input_sequence_length = input_sequence_length
+        # What rollouts and evaluation read of any simulator (model/simulator.py, `Simulator`).
+        self.input_sequence_length = input_sequence_length
+        self.uses_edges = True
+        self.neighbour_backend, self.self_edges = config.neighbour_backend, config.self_edges
         self.dim = metadata.dim
         self.radius = float(config.radius_scale * metadata.default_connectivity_radius)
 
@@ -306,22 +309,6 @@ class DPISimulator(nn.Module):
         state_size = self.dim * (1 + self.num_velocities)
         attr_size = NUM_PARTICLE_TYPES + 1 + state_size  # type one-hot, root flag, offset to the body's mean
         self.network = DPINetwork(self.dim, attr_size, state_size, config)
-
-    @property
-    def uses_edges(self) -> bool:
-        return True
-
-    @property
-    def input_sequence_length(self) -> int:
-        return self._input_sequence_length
-
-    @property
-    def neighbour_backend(self) -> str:
-        return self.config.neighbour_backend
-
-    @property
-    def self_edges(self) -> bool:
-        return self.config.self_edges
 
     def build_graph(self, positions: torch.Tensor, batch: torch.Tensor | None = None) -> torch.Tensor:
         """Leaf-to-leaf edges [2, E] (sender, receiver) within the radius, each particle with itself too."""
