@@ -256,6 +256,9 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     if not done:
         return lines + ["No finished run with rollouts.", ""], {}
     row = done[0]
+    linked = _shared_pictures(row, out_dir)
+    if linked:  # another report already draws this run's rollouts: link them, do not copy them
+        return lines + linked, {}
     with tempfile.TemporaryDirectory() as tmp:
         loaded = load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
     results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
@@ -291,6 +294,27 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         lines += ["### Rigidity", "", f"Rigid-body drift of every test rollout ({figures.RIGIDITY_WORDS}).", "",
                   "![rigid-body drift](rigidity.png)", ""]
     return lines, picks
+
+
+def _shared_pictures(row: RunRow, out_dir: Path) -> list[str]:
+    """Links to the rollout pictures of the report that holds `row`'s run, when `row` is a copy of a run
+    another sweep trained and that sweep's report (same tier) drew this very run; none otherwise."""
+    source_run, source = row.tag("shared_from"), row.tag("shared_from_run")
+    if not source_run or "/" not in source:
+        return []
+    source_dir = out_dir.parent.parent / source.split("/")[0] / out_dir.name
+    picks = read_summary_extras(source_dir / SUMMARY_FILE).get("rollouts") or {}
+    if picks.get("run_id") != source_run or not all((source_dir / f"rollout_{s['label']}.png").is_file()
+                                                    for s in picks.get("shown", [])):
+        return []
+    relative = f"../../{source_dir.parent.name}/{source_dir.name}"
+    lines = [f"The lowest rollout MSE is run {run_id_cell(row)}, which {source.split('/')[0]} trained; its pictures "
+             f"are in that report ([{source_dir.parent.name}/{source_dir.name}]({relative}/README.md)):", ""]
+    for shown in picks["shown"]:
+        name = shown["label"]
+        lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
+                  f"![{name} rollout]({relative}/rollout_{name}.png)", ""]
+    return lines
 
 
 def _rollout_title(shown: dict, alone: bool = False) -> str:
@@ -375,11 +399,12 @@ def write_report(sweep: str | Path, tier: str = "smoke", reports_root: Path = Pa
 
 def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
                       sweeps_dir: Path = SWEEPS_DIR) -> list[Path]:
-    """The report of every sweep in `sweeps_dir` that has runs at `tier`, then the domain table and the
-    stability report (those two always, gaps shown as missing). Returns the README paths in that order."""
+    """The report of every sweep in `sweeps_dir` that has runs at `tier` (domain sweeps first: the others link
+    to their pictures of shared runs), then the domain table, the stability and baselines reports (always, gaps
+    shown as missing) and the front page. Returns the README paths in that order."""
     written = []
-    for path in discover_sweeps(sweeps_dir):
-        spec = load_sweep(path)
+    specs = [load_sweep(path) for path in discover_sweeps(sweeps_dir)]
+    for spec in sorted(specs, key=lambda sweep: sweep.kind != "domain"):  # domains first: the others link to them
         rows = collect(spec, tier, reports_root)
         if any(row.record for row in rows):
             written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))

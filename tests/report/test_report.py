@@ -179,7 +179,7 @@ def test_cli_report_and_unknown_sweep(swept: dict[str, Path], tmp_path: Path) ->
 def test_all_reports_cover_the_sweeps_with_runs(swept: dict[str, Path], tmp_path: Path) -> None:
     written = write_all_reports("smoke", tmp_path, sweeps_dir=swept["root"] / "sweeps")
     assert [p.relative_to(tmp_path).parts[0] for p in written] == [
-        "ablation-noise_std", "domain-tiny", "domains", "stability", "baselines", "README.md"]  # front page last
+        "domain-tiny", "ablation-noise_std", "domains", "stability", "baselines", "README.md"]  # front page last
     assert all(p.name == "README.md" and p.stat().st_size > 0 for p in written)
     # At a tier with no runs only the two overviews are written, their rows all marked missing.
     small = tmp_path / "small"
