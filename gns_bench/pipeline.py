@@ -69,7 +69,9 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
         paths.append(out_dir / f"{prefix}_monitor_states.npz")
     table = out_dir / f"{prefix}_per_trajectory.csv"
     with table.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(evaluation.per_trajectory[0]))
+        # every key any trajectory has: a rollout stopped before step 100 has no `mse_h100`, a later one does
+        fields = list(dict.fromkeys(key for row in evaluation.per_trajectory for key in row))
+        writer = csv.DictWriter(f, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(evaluation.per_trajectory)
     paths.append(table)

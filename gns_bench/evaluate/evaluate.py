@@ -203,8 +203,8 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         per_traj.append(row)
         results.append(result)
     summary = {}
-    for key in per_traj[0]:
-        if key not in ("trajectory", "context"):
+    for key in dict.fromkeys(key for row in per_traj for key in row):  # a key only some trajectories reach too
+        if key not in ("trajectory", "context"):  # (`mse_h100` of the rollouts that got to step 100)
             summary[key] = float(np.mean([row[key] for row in per_traj if key in row]))
     summary["num_trajectories"] = float(len(per_traj))
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}

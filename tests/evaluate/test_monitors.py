@@ -205,3 +205,32 @@ def test_evaluation_flags_without_stopping_by_default(tiny_dataset: Path) -> Non
                                                            stop_on=["out_of_bounds"]), progress=False, bounds=far)
     assert stopped.metrics["rollout_stopped"] == 1.0 and stopped.metrics["rollout_steps"] == 0.0
     assert "rollouts_flagged" not in stopped.tags
+
+
+def test_a_horizon_only_later_trajectories_reach_is_summarised_and_written(tiny_dataset: Path, tmp_path: Path) -> None:
+    """The first rollout stops before step 10, the second reaches it: `mse_h10` is the second's, and the
+    per-trajectory table has the column, empty for the first (a bug once failed a whole run on this)."""
+    import csv
+
+    from gns_bench.config import EvalConfig
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.pipeline import write_evaluation_artifacts
+
+    simulator, meta = untrained_simulator(tiny_dataset)
+    forward, calls = simulator.forward, {"n": 0}
+
+    def poisoned(*args, **kwargs):
+        calls["n"] += 1
+        out = forward(*args, **kwargs)
+        return out * float("nan") if calls["n"] == 4 else out  # the first rollout's 4th step goes bad
+
+    simulator.forward = poisoned
+    evaluation = evaluate(simulator, load_split(tiny_dataset, "test")[:2],
+                          EvalConfig(one_step_windows=1, distribution_steps=0, rollout_steps=12), progress=False)
+    first, second = evaluation.per_trajectory
+    assert "mse_h10" not in first and "mse_h10" in second
+    assert evaluation.metrics["mse_h10"] == pytest.approx(second["mse_h10"])
+    write_evaluation_artifacts(evaluation, tmp_path, meta.bounds, "test")
+    with (tmp_path / "test_per_trajectory.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows[0]["mse_h10"] == "" and float(rows[1]["mse_h10"]) == pytest.approx(second["mse_h10"])
