@@ -40,6 +40,7 @@ class RunOutcome:
 # 1: every config field in the key (before 2026-11-22). 2: only fields that differ from Config()'s.
 # 3: configs resolved against their dataset before keying (issue #18), and the release's defaults (#17).
 KEY_VERSION = 3
+KEYED_SECTIONS = ("model", "train", "eval", "stress")  # the config's sections at KEY_VERSION 3: always in the key
 _MISSING = object()
 
 
@@ -51,6 +52,9 @@ def run_key(config: Config, domain: str, dataset_hash: str, eval_dataset_hash: s
     defaults = Config().to_dict()
     config_values = {section: {k: v for k, v in values.items() if defaults.get(section, {}).get(k, _MISSING) != v}
                      for section, values in config.to_dict().items()}
+    # A section added since (e.g. [cconv], [dpi]) enters only when it holds a non-default value, as a field does.
+    config_values = {section: values for section, values in config_values.items()
+                     if values or section in KEYED_SECTIONS}
     payload = {"config": config_values, "domain": domain, "dataset_hash": dataset_hash, "version": KEY_VERSION}
     if eval_dataset_hash is not None:  # evaluated on another dataset than it trains on (a study's candidate)
         payload["eval_dataset_hash"] = eval_dataset_hash

@@ -343,6 +343,12 @@ def test_run_key_ignores_fields_at_their_default(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(Config, "to_dict", older_config)
     assert dataset_key(run, "abc") == key
 
+    def with_a_new_section(self: Config) -> dict:  # a section added later, at its defaults
+        return {**without(self), "newer": {"knob": 1}}
+
+    monkeypatch.setattr(Config, "to_dict", with_a_new_section)
+    assert dataset_key(run, "abc") == key
+
 
 def test_run_key_resolves_a_radius_equal_to_the_datasets() -> None:
     """The radius ablation's point at the dataset's default R is the domain run, which leaves R unset: both
