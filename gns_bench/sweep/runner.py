@@ -14,7 +14,6 @@ from __future__ import annotations
 import fnmatch
 import hashlib
 import json
-import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -125,6 +124,17 @@ def _resumable(out_dir: Path, key: str) -> bool:
     return run is not None and run.status != "FINISHED" and run.tags.get("run_key") == key
 
 
+def set_aside(out_dir: Path) -> Path:
+    """Move a run directory this plan cannot resume out of the way, to `<name>.set-aside-<n>` beside it, never
+    deleting it: its checkpoint may be the only copy of hours of training (a plan whose key changed under it)."""
+    index = 1
+    while (target := out_dir.with_name(f"{out_dir.name}.set-aside-{index}")).exists():
+        index += 1
+    out_dir.rename(target)
+    print(f"{out_dir}: not resumable under this plan; moved to {target.name}", flush=True)
+    return target
+
+
 def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri: str | None = None,
                 progress: bool = True) -> RunOutcome:
     """Train and evaluate one planned run (its dataset must exist). Picklable for submitit."""
@@ -135,7 +145,7 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     out_dir = run_dir(runs_root, run)
     resume = _resumable(out_dir, key)
     if not resume and out_dir.exists():
-        shutil.rmtree(out_dir)  # a finished run whose MLflow record was deleted, or a foreign leftover
+        set_aside(out_dir)  # another plan's attempt (its key differs), or a run whose MLflow record is gone
     try:
         summary = train_run(
             run.config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,

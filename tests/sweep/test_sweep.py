@@ -263,6 +263,9 @@ def test_a_run_whose_plan_changed_starts_afresh(sweeps: Path, tmp_path: Path,
     assert outcome.status == "FINISHED" and outcome.run_id != killed.info.run_id, outcome.error
     statuses = {r.info.run_id: r.info.status for r in runs_of("sweep:test-replanned")}
     assert statuses == {killed.info.run_id: "KILLED", outcome.run_id: "FINISHED"}
+    # the earlier attempt's folder, checkpoint included, is set aside, not deleted
+    (aside,) = (tmp_path / "runs").rglob("*.set-aside-1")
+    assert (aside / "checkpoint.pt").is_file() and (aside / "mlflow_run_id").read_text().strip() == killed.info.run_id
 
 
 def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
