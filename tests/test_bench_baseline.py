@@ -48,5 +48,8 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
     assert saved["scaling"][0]["peak_memory_mb"] > 0
     readme = (tmp_path / "README.md").read_text()
     assert "## Targets" in readme and "PyG MessagePassing baseline" in readme and "waterdrop" in readme
+    pick = saved["autotune"]  # what train.precision = "auto" picks, judged against the variants timed at length
+    assert pick["precision"] in ("fp32", "bf16") and set(pick["probe_step_s"]) == {"fp32", "bf16"}
+    assert "auto within 5% of the fastest variant" in readme and f"auto picked {pick['precision']}" in readme
     with Image.open(tmp_path / "bench_scaling.png") as image:
         assert image.size[0] > 300

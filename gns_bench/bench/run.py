@@ -27,8 +27,10 @@ from gns_bench.bench.measure import (
     synthetic_scene,
     train_step_seconds,
 )
-from gns_bench.config import ModelConfig
+from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.devices import resolve_device
+from gns_bench.model.precision import autocast
+from gns_bench.train import autotune
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
@@ -98,6 +100,31 @@ def measure_training(settings: BenchSettings, device: torch.device) -> list[dict
                          "skinny_gemm_gflops": skinny[precision], "fraction_of_skinny": rate / skinny[precision],
                          "loss_after_steps": loss})
     return rows
+
+
+def measure_autotune(settings: BenchSettings, device: torch.device, steps: int = 20_000) -> dict[str, Any]:
+    """What `train.precision = "auto"` and `train.compile = "auto"` pick for the bench's training scene (its own
+    short probe, no cache), to set against the variants the bench times at length."""
+    scene = synthetic_scene(settings.train_particles, 2)
+    model = build_model(ModelConfig(), scene, device)
+    window, types = scene.window.to(device), scene.particle_type.to(device)
+    edges = model.build_graph(window[:, -1])
+    target = torch.zeros(window.shape[0], window.shape[2], device=device)
+    optimisers: dict[int, torch.optim.Optimizer] = {}
+
+    def step(candidate, precision: str) -> None:
+        optimiser = optimisers.setdefault(id(candidate), torch.optim.Adam(candidate.parameters(), lr=0.0))
+        with autocast(device, precision):
+            predicted = candidate(window, types, edge_index=edges)
+        loss = (predicted.float() - target).square().sum(-1).mean()
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+
+    config = TrainConfig(precision="auto", compile="auto" if settings.compile else False)
+    choice = autotune.choose(config, model, step, window.shape[0], device, steps, use_cache=False)
+    return {"precision": choice.precision, "compiled": choice.compile, "probe_step_s": choice.seconds_per_step,
+            "compile_s": choice.compile_seconds, "steps_assumed": steps}
 
 
 def measure_inference(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
@@ -171,6 +198,8 @@ def run_bench(out_dir: str | Path = "reports/bench", settings: BenchSettings | N
     }
     print(f"bench on {results['environment']['hardware']}: training step...", flush=True)
     results["train"] = measure_training(settings, device)
+    print("what train.precision/compile = auto picks...", flush=True)
+    results["autotune"] = measure_autotune(settings, device)
     print("rollout steps of the paper's domains...", flush=True)
     results["inference"] = measure_inference(settings, device)
     print("scaling in particle count...", flush=True)
