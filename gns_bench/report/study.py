@@ -18,8 +18,11 @@ from gns_bench.report.cells import MISSING, fmt, run_ids_cell  # noqa: E402
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
 from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 
-CURVE_PANELS = (("rollout_mse", "rollout MSE, first {steps} steps"), ("mse_h10", "MSE at 10 steps"),
-                ("one_step_mse", "one-step MSE"))
+# What the error-against-time figure draws: the rollout MSE over constant velocity's on the same steps (like for
+# like however early a monitor stopped a rollout; an untrained model's rollouts stop at once, so its raw rollout
+# MSE covers a few steps and reads low), the MSE over the first 10 steps, and the one-step MSE.
+CURVE_PANELS = (("against_cv", "rollout MSE / constant velocity's, same steps (first {steps})"),
+                ("mse_h10", "MSE over the first 10 steps (box units²)"), ("one_step_mse", "one-step MSE (box units²)"))
 DPI = 80
 
 
@@ -28,8 +31,13 @@ def curve(row: RunRow, metric: str) -> list[tuple[float, float]]:
     if not row.ok:
         return []
     seconds = dict(row.record.curves.get("curve/train_seconds", []))
-    return [(seconds[step], value) for step, value in row.record.curves.get(f"curve/{metric}", [])
-            if step in seconds and math.isfinite(value)]
+    if metric == "against_cv":
+        baseline = dict(row.record.curves.get("curve/baseline_cv_same_steps_mse", []))
+        values = [(step, value / baseline[step]) for step, value in row.record.curves.get("curve/rollout_mse", [])
+                  if baseline.get(step, 0) > 0]
+    else:
+        values = row.record.curves.get(f"curve/{metric}", [])
+    return [(seconds[step], value) for step, value in values if step in seconds and math.isfinite(value)]
 
 
 def by_candidate(sweep: SweepSpec, rows: list[RunRow]) -> dict[str, list[RunRow]]:
