@@ -14,7 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from gns_bench.report.cells import MISSING, fmt, run_ids_cell  # noqa: E402
+from gns_bench.report.cells import MISSING, comparable_cv, fmt, run_ids_cell, steps_covered  # noqa: E402
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
 from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 
@@ -47,29 +47,37 @@ def by_candidate(sweep: SweepSpec, rows: list[RunRow]) -> dict[str, list[RunRow]
     return {name: group for name, group in groups.items() if group}
 
 
+def against_cv(row: RunRow) -> float:
+    """A run's rollout MSE over constant velocity's on the same steps: like for like whether or not a monitor
+    stopped its rollouts, and so what the study ranks candidates by."""
+    baseline = comparable_cv(row)
+    return row.metric("rollout_mse") / baseline if baseline > 0 else math.nan
+
+
 def winner(groups: dict[str, list[RunRow]]) -> tuple[str, str]:
-    """(the best candidate by mean rollout MSE, a sentence on how clear its lead is)."""
-    means = {name: mean_std([r.metric("rollout_mse") for r in group]) for name, group in groups.items()}
+    """(the best candidate by its mean rollout MSE over constant velocity's on the same steps, a sentence on how
+    clear its lead is against the seed spread)."""
+    means = {name: mean_std([against_cv(r) for r in group if r.ok]) for name, group in groups.items()}
     ranked = sorted((m for m in means.items() if m[1][2]), key=lambda item: item[1][0])
     if not ranked:
         return "", "No candidate has finished yet."
     best, (mean, std, seeds) = ranked[0]
+    words = "Lowest rollout MSE against constant velocity's on the same steps"
     if len(ranked) == 1:
-        return best, f"Only `{best}` has finished."
+        return best, f"Only `{best}` has finished ({fmt(mean)}x)."
     runner_up, (mean2, std2, seeds2) = ranked[1]
-    margin = f"{mean2 / mean:.2g}x"
     if seeds > 1 and seeds2 > 1:
         clear = mean + std < mean2 - std2
         verdict = "clear of the seed spread" if clear else "within the seed spread: not separated"
-        return best, (f"Lowest rollout MSE: `{best}` ({fmt(mean)} ± {fmt(std)} over {seeds} seeds), {margin} below "
-                      f"`{runner_up}` ({fmt(mean2)} ± {fmt(std2)}), {verdict}.")
-    return best, (f"Lowest rollout MSE: `{best}` ({fmt(mean)}), {margin} below `{runner_up}` ({fmt(mean2)}); one "
-                  "seed of at least one of them, so the lead is not yet measured against the seed spread.")
+        return best, (f"{words}: `{best}` ({fmt(mean)}x ± {fmt(std)} over {seeds} seeds), against `{runner_up}` "
+                      f"({fmt(mean2)}x ± {fmt(std2)} over {seeds2}), {verdict}.")
+    return best, (f"{words}: `{best}` ({fmt(mean)}x), against `{runner_up}` ({fmt(mean2)}x); one seed of at least "
+                  "one of them, so the lead is not yet measured against the seed spread.")
 
 
 def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
     header = ("| candidate | seeds | steps | training time (s) | s/step | one-step MSE | rollout MSE | vs constant "
-              "velocity, same steps | MSE at 10 / 100 steps | rollouts stopped | hardware | MLflow runs |")
+              "velocity, same steps | MSE at 10 / 100 steps | rollout steps covered | hardware | MLflow runs |")
     lines = [header, "|" + "---|" * header.count(" | ") + "---|"]
     for name, group in groups.items():
         done = [r for r in group if r.ok]
@@ -84,7 +92,7 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
                  fmt(rollout) + (f" ± {fmt(rollout_std)}" if seeds > 1 else ""),
                  f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
                  f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
-                 f"{mean('rollout_stopped'):.0%}" if done else "—",
+                 steps_covered(done) if done else "—",
                  "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—", run_ids_cell(group)]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
