@@ -68,16 +68,17 @@ def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable
 def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path,
                  reports_root: Path = Path("reports"), launcher: str = "local", cluster: str | None = None,
                  progress: bool = True, echo: Callable[[str], None] = print,
-                 sweeps_dir: Path = SWEEPS_DIR) -> list[SweepResult]:
+                 sweeps_dir: Path = SWEEPS_DIR, parallel: int = 1) -> list[SweepResult]:
     """Run every sweep of the campaign at `tier` in order, writing each one's report when it is done, then
-    every report (`write_all_reports`: the domain table and stability pages too)."""
+    every report (`write_all_reports`: the domain table and stability pages too). `parallel`: runs at once
+    within each sweep (`run_sweep`)."""
     results = []
     for index, path in enumerate(campaign.sweeps, 1):
         sweep: SweepSpec = load_sweep(path, sweeps_dir)
         echo(f"== campaign {campaign.name} ({tier}), sweep {index}/{len(campaign.sweeps)}: {sweep.name}")
         try:
             outcomes = run_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, launcher=launcher,
-                                 cluster=cluster, progress=progress, echo=echo)
+                                 cluster=cluster, progress=progress, parallel=parallel, echo=echo)
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # noqa: BLE001 - one sweep's failure (a dataset that would not generate) is reported

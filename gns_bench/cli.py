@@ -167,11 +167,15 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help="run every run of a sweep spec (sweeps/**/*.toml), tracked in MLflow")
     p.add_argument("file", type=Path, help="sweep TOML, e.g. sweeps/ablations/noise_std.toml")
     p.add_argument("--tier", default="smoke", choices=TIERS,
-                   help="budget (sweeps/tiers.toml): smoke, seconds a run; small, hours a run on 2 CPU cores; "
+                   help="budget (sweeps/tiers.toml): smoke, seconds a run (a pipeline check); small, hours a run on 2 "
+                        "CPU cores; cpu, the campaign's budget, at most 30 minutes a run on 2 cores (issue #19); "
                         "paper, the paper's 20M steps")
     p.add_argument("--dry-run", action="store_true", help="print the table of runs and their status; run nothing")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
+    p.add_argument("--parallel", type=int, default=1, metavar="N",
+                   help="local launcher: N runs at once, each in its own process on its own share of the cores "
+                        "(on a GPU they share the device); default 1")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"],
                    help="submitit executor (default: SLURM when available, else local)")
     p.add_argument("--no-share", action="store_true",
@@ -203,7 +207,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                          launcher=args.launcher, cluster=args.cluster, share=not args.no_share, only=args.only,
-                         train=not args.no_train, reevaluate_reason=args.reevaluate)
+                         train=not args.no_train, reevaluate_reason=args.reevaluate, parallel=args.parallel)
     counts = {s: sum(o.status == s for o in outcomes)
               for s in ("FINISHED", "REEVALUATED", "SKIPPED", "SHARED", "FAILED")}
     print(f"sweep {sweep.name}: {counts['FINISHED']} finished, "
@@ -228,6 +232,9 @@ def _add_campaign(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dry-run", action="store_true", help="print every sweep's runs and their status; run nothing")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: job arrays (SLURM, else local processes)")
+    p.add_argument("--parallel", type=int, default=1, metavar="N",
+                   help="local launcher: N runs at once, each in its own process on its own share of the cores "
+                        "(on a GPU they share the device); default 1")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"], help="submitit executor")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or made")
     p.add_argument("--runs-root", type=Path, default=Path("runs"), help="where run directories go")
@@ -242,7 +249,8 @@ def cmd_campaign(args: argparse.Namespace) -> None:
         plan_campaign(campaign, args.tier, args.data_root)
         return
     results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
-                           reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster)
+                           reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster,
+                           parallel=args.parallel)
     failed = [(r.sweep, o) for r in results for o in r.outcomes if o.status == "FAILED"]
     broken = [r for r in results if r.error]
     done = sum(o.status in ("FINISHED", "SKIPPED", "SHARED", "REEVALUATED") for r in results for o in r.outcomes)
@@ -359,7 +367,8 @@ def cmd_stress(args: argparse.Namespace) -> None:
 def _print_summary(summary) -> None:
     from gns_bench.tracking import ui_url
 
-    print(f"MLflow run: {summary.run_id} (after `gns-bench ui`: {ui_url(run_id=summary.run_id)})")
+    if summary.run_id:  # ranks other than 0 of a distributed run log nothing to MLflow
+        print(f"MLflow run: {summary.run_id} (after `gns-bench ui`: {ui_url(run_id=summary.run_id)})")
     print(f"run directory: {summary.out_dir.resolve()}")
     for line in summary_lines(summary.metrics):
         print(f"  {line}")

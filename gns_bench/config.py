@@ -27,6 +27,10 @@ class ConfigError(ValueError):
     """A bad configuration value; the message names the source and the key."""
 
 
+# How the papers name each architecture (for reports; the config value stays the lowercase key).
+ARCHITECTURE_NAMES = {"gns": "GNS", "cconv": "CConv", "dpi": "DPI-Net"}
+
+
 @dataclass
 class ModelConfig:
     """The learned simulator (paper Sec. 3-4.2, App. A; DeepMind's release, learning_to_simulate/)."""

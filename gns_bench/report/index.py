@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gns_bench.config import TIERS
+from gns_bench.config import ARCHITECTURE_NAMES, TIERS
 from gns_bench.report.cells import comparable_cv, fmt
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
@@ -127,9 +127,10 @@ def baseline_claims(reports_root: Path) -> list[str]:
         if sweep.kind != "baseline":
             continue
         tier, rows = best_tier(sweep, reports_root)
-        architecture = sweep.plan("smoke")[0].config.model.architecture
+        key = sweep.plan("smoke")[0].config.model.architecture
+        architecture = ARCHITECTURE_NAMES[key]
         ref = domain_reference(sweep.domain)
-        paper_baseline = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
+        paper_baseline = ref.cconv_rollout_mse if ref and key == "cconv" else None
         paper = (f"{architecture} / GNS = {fmt(paper_baseline / ref.rollout_mse)}x" if paper_baseline
                  else "GNS learns the cube's rigidity, DPI-Net builds it in")
         claim = f"{ref.name if ref else sweep.domain}: GNS against {architecture} (Sec. 5.5)"

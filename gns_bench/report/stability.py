@@ -129,7 +129,7 @@ def context_figure(rows: list[dict[str, float]], path: Path, held_out: tuple[flo
 
     x = np.array([r["context"] for r in rows])
     fig, ax = plt.subplots(figsize=(4.8, 3.2))
-    for key, label in (("rollout_mse", "GNS"), ("baseline_cv_rollout_mse", "constant velocity")):
+    for key, label in (("rollout_mse", "GNS"), ("baseline_cv_same_steps_mse", "constant velocity, same steps")):
         y = np.array([r.get(key, math.nan) for r in rows])
         order = np.argsort(x)
         ax.plot(x[order], y[order], "o-", ms=4, lw=1, label=label)

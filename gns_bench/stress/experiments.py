@@ -207,22 +207,27 @@ def scale(simulator: LearnedSimulator, scenes: dict[int, tuple[list[Trajectory],
     w = simulator.input_sequence_length
     for factor, (trajectories, bounds) in sorted(scenes.items()):
         length = max(t.num_steps - w for t in trajectories) if steps is None else steps
-        errors, baseline, seconds, done = [], [], [], []
+        errors, gns, baseline, scored, seconds, done = [], [], [], [], [], []
         for i, traj in enumerate(trajectories):
             started = time.perf_counter()
             result = _run(simulator, traj, length, device, bounds=bounds)
             seconds.append((time.perf_counter() - started) / max(result.predicted.shape[0], 1))
             errors.append(per_step_mse(result, length))
-            cv = metrics.constant_velocity_rollout(result.initial_window, result.ground_truth.shape[0])
-            baseline.append(metrics.rollout_mse(cv, result.ground_truth, result.scored_mask(len(cv))))
+            # Like for like (issue #20): constant velocity over the steps this GNS rollout covered, no more.
+            k = int(np.sum(np.isfinite(errors[-1])))
+            cv = metrics.constant_velocity_rollout(result.initial_window, k)
+            gns.append(float(np.nanmean(errors[-1])) if k else np.nan)
+            baseline.append(metrics.rollout_mse(cv, result.ground_truth[:k], result.scored_mask(k)) if k else np.nan)
+            scored.append(k)
             done.append(length if result.stopped_at is None else result.stopped_at)
             out.trips += _trip(f"x{factor}", i, result)
         particles = float(np.mean([t.num_particles for t in trajectories]))
         out.curves[f"mse_x{factor}"] = _stack(errors)
         out.metrics.update({
             f"x{factor}/particles": particles, f"x{factor}/particle_ratio": particles / training_particles,
-            f"x{factor}/rollout_mse": float(np.nanmean(out.curves[f"mse_x{factor}"])),
-            f"x{factor}/baseline_cv_rollout_mse": float(np.mean(baseline)),
+            f"x{factor}/rollout_mse": float(np.nanmean(gns)),
+            f"x{factor}/baseline_cv_same_steps_mse": float(np.nanmean(baseline)),
+            f"x{factor}/steps_scored": float(np.mean(scored)),
             f"x{factor}/seconds_per_step": float(np.mean(seconds)), f"x{factor}/steps": float(length),
             f"x{factor}/stable_steps": float(min(done))})
     stable = [f for f in scenes if out.metrics[f"x{f}/stable_steps"] >= out.metrics[f"x{f}/steps"]]

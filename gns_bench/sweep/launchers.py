@@ -1,4 +1,5 @@
-"""Dispatch sweep runs through submitit: SLURM job arrays on a cluster, its local executor on one machine.
+"""Dispatch sweep runs: several at once on this machine (`run_parallel`, each in its own process on its own
+share of the cores), or through submitit (SLURM job arrays on a cluster, its local executor on one machine).
 
 Datasets are generated before dispatch (once, by the submitting process); each job calls the run
 function it is given (the runner's `execute_run`, bound to the data, runs and tracking locations) on one
@@ -7,7 +8,11 @@ planned run.
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import TypeVar
 
@@ -40,3 +45,78 @@ def submit(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], folder: 
         except Exception as exc:  # noqa: BLE001 - a job that died outside the run
             results.append(f"job {submitted.job_id}: {exc}")
     return results
+
+
+def core_slices(cores: list[int], parallel: int) -> list[list[int]]:
+    """Divide `cores` between `parallel` jobs: disjoint slices, as even as they go (5 cores, 2 jobs: 3 and 2).
+    With fewer cores than jobs each job gets one core, taken in turn, and jobs share cores: say so to the user
+    (two 2-thread torch jobs on 2 cores made a training step about 10x slower, issue #22)."""
+    if parallel < 1:
+        raise ValueError(f"parallel: expected at least 1 job, got {parallel}")
+    if not cores:
+        raise ValueError("no cores to divide")
+    if len(cores) < parallel:
+        return [[cores[i % len(cores)]] for i in range(parallel)]
+    size, extra = divmod(len(cores), parallel)
+    slices, start = [], 0
+    for i in range(parallel):
+        end = start + size + (1 if i < extra else 0)
+        slices.append(cores[start:end])
+        start = end
+    return slices
+
+
+def usable_core_ids() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return list(range(os.cpu_count() or 1))
+
+
+def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
+    """A worker's initialiser: take one slice of cores for this process (torch's threads follow its affinity,
+    `devices.set_threads`)."""
+    cores = slices.get()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, cores)
+    import torch  # a spawned process may have imported torch already (with the parent's module), its pool sized
+
+    torch.set_num_threads(len(cores))  # to every core: size it to this process's share
+
+
+def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], parallel: int,
+                 echo: Callable[[str], None] = print) -> list[Result | str]:
+    """`job(run)` for every run, `parallel` at a time, each in its own (spawned) process pinned to its own
+    slice of this process's cores (`core_slices`); on a GPU they share the device. Prints each run as it ends,
+    with what is still running and waiting. Returns each run's result in `runs`' order, or a message saying
+    why its process died outside the run."""
+    if not runs:
+        return []
+    parallel = min(parallel, len(runs))
+    cores = usable_core_ids()
+    slices = core_slices(cores, parallel)
+    if len(cores) < parallel:
+        echo(f"  warning: {parallel} jobs on {len(cores)} cores share them: their step times are not comparable")
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
+    with context.Manager() as manager:
+        queue = manager.Queue()
+        for cores_of_one in slices:
+            queue.put(cores_of_one)
+        results: dict[int, Result | str] = {}
+        started = time.perf_counter()
+        with ProcessPoolExecutor(parallel, mp_context=context, initializer=_pin_worker,
+                                 initargs=(queue,)) as pool:
+            futures = {pool.submit(job, run): i for i, run in enumerate(runs)}
+            for done, future in enumerate(as_completed(futures), 1):
+                i = futures[future]
+                try:
+                    results[i] = future.result()
+                except Exception as exc:  # noqa: BLE001 - a process that died outside the run
+                    results[i] = f"process of {runs[i].name}: {type(exc).__name__}: {exc}"
+                status = getattr(results[i], "status", "FAILED")
+                elapsed = time.perf_counter() - started
+                left = len(runs) - done
+                eta = f", about {elapsed / done * left / 60:.0f} min left" if left else ""
+                echo(f"  [{done}/{len(runs)}] {runs[i].name}: {status} after {elapsed / 60:.1f} min "
+                     f"({min(parallel, left)} running, {max(left - parallel, 0)} waiting{eta})")
+    return [results[i] for i in range(len(runs))]

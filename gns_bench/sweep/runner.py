@@ -258,10 +258,16 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
               launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
               only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
-              echo: Callable[[str], None] = print) -> list[RunOutcome]:
+              parallel: int = 1, echo: Callable[[str], None] = print) -> list[RunOutcome]:
     """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
-    `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why."""
+    `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
+    the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
+    GPU, sharing the device: issue #22)."""
+    if parallel < 1:
+        raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
+    if parallel > 1 and launcher != "local":
+        raise ValueError(f"parallel = {parallel} is for the local launcher; {launcher} sets its own parallelism")
     runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only)
     again: list[RunOutcome] = []
     if reevaluate_reason is not None:
@@ -283,7 +289,16 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
             key, source = shared[run.name]
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), recorded without training")
             outcomes.append(share_run(run, key, source))
-    if launcher == "local":
+    if launcher == "local" and parallel > 1:
+        from gns_bench.sweep.launchers import run_parallel
+
+        echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores")
+        job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
+                      tracking_uri=tracking.tracking_uri(), progress=False)
+        results = run_parallel(job, pending, parallel, echo)
+        outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
+                     for run, result in zip(pending, results, strict=True)]
+    elif launcher == "local":
         for index, run in enumerate(pending, 1):
             echo(f"[{index}/{len(pending)}] {run.name}")
             outcome = execute_run(run, data_root, runs_root, progress=progress)

@@ -17,6 +17,7 @@ MODEL = "[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 8\nmessa
 
 def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")  # its own domain-tiny runs
     root = tmp_path / "sweeps"
     for folder in ("domains", "baselines"):
         (root / folder).mkdir(parents=True)

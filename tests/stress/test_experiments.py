@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from gns_bench.config import ModelConfig
-from gns_bench.data.format import Trajectory, load_split, read_metadata
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory, load_split, read_metadata
 from gns_bench.evaluate import metrics
 from gns_bench.stress import experiments
 
@@ -83,6 +83,13 @@ def test_scale_and_horizon_report_stability(simulator, tiny_dataset: Path) -> No
     result = experiments.scale(simulator, {2: (trajectories, wide)}, trajectories[0].num_particles / 2, steps=5)
     assert result.metrics["x2/particle_ratio"] == pytest.approx(2.0)
     assert result.metrics["x2/stable_steps"] == 5 and result.metrics["largest_stable_factor"] == 2
+    # Constant velocity over the 5 steps the GNS covered, not over the whole ground truth (issue #20).
+    (traj,) = trajectories
+    w = simulator.input_sequence_length
+    cv = metrics.constant_velocity_rollout(traj.position[:w], 5)
+    assert result.metrics["x2/steps_scored"] == 5 and traj.num_steps - w > 5
+    assert result.metrics["x2/baseline_cv_same_steps_mse"] == pytest.approx(
+        metrics.rollout_mse(cv, traj.position[w:w + 5], traj.particle_type != KINEMATIC_PARTICLE_TYPE), rel=1e-6)
     horizon = experiments.horizon(simulator, trajectories, training_length=5, steps=10)
     assert horizon.metrics["horizon_factor"] == 2 and len(horizon.curves["mse"]) == 10
     assert horizon.metrics["stable_steps"] <= 10

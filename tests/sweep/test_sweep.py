@@ -13,6 +13,7 @@ from mlflow.tracking import MlflowClient
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.config import resolve_for_dataset
+from gns_bench.sweep.launchers import core_slices, usable_core_ids
 from gns_bench.sweep.runner import prepare, run_key, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
@@ -278,6 +279,33 @@ def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
     runs = runs_of(sweep.experiment)
     assert sorted(r.data.params["model.message_passing_steps"] for r in runs) == ["1", "2"]
     assert all(r.info.status == "FINISHED" for r in runs)
+
+
+def test_core_slices_divide_the_cores_between_jobs() -> None:
+    assert core_slices([0, 1, 2, 3, 4], 2) == [[0, 1, 2], [3, 4]]
+    assert core_slices([4, 5], 2) == [[4], [5]]
+    assert core_slices([0, 1], 3) == [[0], [1], [0]]  # more jobs than cores: one each, shared in turn
+    with pytest.raises(ValueError, match="at least 1"):
+        core_slices([0, 1], 0)
+
+
+def test_parallel_runs_each_in_its_own_process_on_its_own_cores(sweeps: Path, tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture) -> None:
+    path = sweeps / "tests" / "parallel.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs",
+                         progress=False, share=False, parallel=2)
+    assert [o.status for o in outcomes] == ["FINISHED", "FINISHED"], [o.error for o in outcomes]
+    assert "[2/2]" in capsys.readouterr().out  # each run's end is told as it comes
+    runs = runs_of(sweep.experiment)
+    assert sorted(r.data.params["model.message_passing_steps"] for r in runs) == ["1", "2"]
+    threads = [int(r.data.tags["hardware"].rsplit(", ", 1)[1].split()[0]) for r in runs]
+    cores = len(usable_core_ids())
+    assert sum(threads) <= max(cores, 2), (threads, cores)  # the cores divided, not each run taking them all
+    with pytest.raises(ValueError, match="local launcher"):
+        run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", launcher="submitit",
+                  parallel=2)
 
 
 def test_nox_has_one_session_per_sweep_file(monkeypatch: pytest.MonkeyPatch) -> None:
