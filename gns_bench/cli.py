@@ -27,10 +27,14 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("domain", help="domain id (e.g. waterdrop, sand-3d, boxbath, or tiny: no physics engine) or a "
                                   "variant in datasets/variants/ (e.g. waterramps-inflow); 'list' prints them all")
     p.add_argument("--tier", default="smoke", choices=TIERS,
-                   help="smoke: seconds (tests); small: ~30 min on 2 cores; paper: the paper's sizes")
+                   help="smoke: seconds (tests); small: ~10-25 min on 2 cores; cpu: at most 15 min on 2 cores (the "
+                        "CPU campaign's); paper: the paper's sizes")
     p.add_argument("--seed", type=int, default=0, help="dataset seed: the same seed gives the same files")
     p.add_argument("--out", type=Path, default=None, help="dataset directory (default data/<domain>-<tier>-s<seed>)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    p.add_argument("--time", type=float, default=None, metavar="SECONDS",
+                   help="write nothing: simulate the tier's first training trajectories for about SECONDS and "
+                        "estimate how long the whole dataset takes on this machine")
 
 
 def cmd_generate(args: argparse.Namespace) -> None:
@@ -43,6 +47,18 @@ def cmd_generate(args: argparse.Namespace) -> None:
 
         print("domains:  " + " ".join(list_domains()))
         print("variants: " + " ".join(list_variants()))
+        return
+    if args.time is not None:
+        from gns_bench.devices import cpu_model
+        from gns_bench.physics.generate import time_generation
+
+        check_domain(args.domain)
+        if args.domain == "tiny":
+            raise SystemExit("gns-bench generate: 'tiny' is made by numpy in about a second; nothing to time")
+        t = time_generation(args.domain, args.tier, args.time, args.seed)
+        print(f"{t.domain} tier {t.tier}: {t.seconds_per_trajectory:.2f} s a trajectory ({t.timed} timed, "
+              f"{t.mean_particles:.0f} particles on average; the first, compiling included, {t.first_seconds:.1f} s) "
+              f"on {cpu_model()}: its {t.trajectories} trajectories in about {t.estimated_minutes:.1f} min")
         return
     out = args.out or dataset_path(args.domain, args.tier, args.seed)
     if args.overwrite and out.exists():

@@ -22,7 +22,7 @@ from gns_bench.data.format import (
     read_metadata,
 )
 from gns_bench.datasets import ensure_dataset
-from gns_bench.physics.generate import GENERATOR_VERSION, GenerationError, generate_dataset
+from gns_bench.physics.generate import GENERATOR_VERSION, GenerationError, generate_dataset, time_generation
 from gns_bench.physics.spec import list_domains, load_domain_spec
 
 
@@ -95,6 +95,18 @@ def test_same_seed_same_files_other_seed_other_files(tmp_path: Path,
     stamp = (again / "train.h5").stat().st_mtime_ns
     assert generate_dataset("waterdrop", "smoke", seed=0, out=again, progress=False) == again
     assert (again / "train.h5").stat().st_mtime_ns == stamp
+
+
+def test_timing_a_tier_simulates_its_first_trajectories_and_writes_nothing(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    tier = load_domain_spec("waterdrop").tier("smoke")
+    timing = time_generation("waterdrop", "smoke", budget_seconds=0.0)
+    assert timing.timed == min(3, tier.trajectories["train"]) and timing.trajectories == sum(tier.trajectories.values())
+    assert timing.first_seconds > 0 and timing.seconds_per_trajectory > 0 and timing.mean_particles > 0
+    expected = (timing.first_seconds + (timing.trajectories - 1) * timing.seconds_per_trajectory) / 60
+    assert timing.estimated_minutes == pytest.approx(expected)
+    assert list(tmp_path.iterdir()) == []  # nothing written
 
 
 _THREADED_RUN = """
