@@ -6,6 +6,7 @@ drawn by each model (the failure modes the paper shows: the cube losing its shap
 
 from __future__ import annotations
 
+import json
 import math
 import tempfile
 from pathlib import Path
@@ -16,12 +17,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from gns_bench.config import ARCHITECTURE_NAMES  # noqa: E402
 from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
 from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 from gns_bench.report import figures  # noqa: E402
 from gns_bench.report.cells import budget_statement, definitions_section, fmt, ratio, run_ids_cell  # noqa: E402
-from gns_bench.report.collect import RunRow, collect, domain_sweeps, load_rollouts, mean_std  # noqa: E402
+from gns_bench.report.collect import (  # noqa: E402
+    SUMMARY_FILE,
+    RunRow,
+    collect,
+    domain_sweeps,
+    load_rollouts,
+    mean_std,
+    read_summary_extras,
+)
 from gns_bench.report.reference import domain_reference  # noqa: E402
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 
@@ -74,7 +84,7 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> P
             continue
         length = min(len(c[0]) for c in curves)
         model = np.nanmean([c[0][:length] for c in curves], axis=0)
-        ax.plot(np.arange(length), model, color=config_colour(name), label=name)
+        ax.plot(np.arange(length), model, color=config_colour(name), label=ARCHITECTURE_NAMES.get(name, name))
         truth = truth if truth is not None else np.nanmean([c[1][:length] for c in curves], axis=0)
         drawn = True
     if not drawn:
@@ -107,23 +117,32 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), ""]
     boxbath = [(s, rows, gns) for s, rows, gns in collected if s.domain == "boxbath"]
+    drawn = read_summary_extras(out_dir / SUMMARY_FILE).get("boxbath") or {}
     if boxbath:
         with tempfile.TemporaryDirectory() as tmp:
-            models = {"GNS": _rollouts(_best(boxbath[0][2]), Path(tmp) / "gns")}
+            models = {"gns": _rollouts(_best(boxbath[0][2]), Path(tmp) / "gns")}
             for sweep, rows, _ in boxbath:
                 models[architecture_of(sweep)] = _rollouts(_best(rows), Path(tmp) / sweep.name)
-        figure = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
-        if figure is not None:
+        if any(models.values()):  # drawn afresh; else the last report's pictures stand (its summary lists them)
+            figure = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
+            drawn = {"rigidity": figure is not None, "rollouts": [
+                name for name, rollouts in models.items() if rollouts and rollouts[0].predicted.shape[0]]}
+            for name in drawn["rollouts"]:
+                figures.rollout_png(models[name][0], out_dir / f"boxbath_{name}.png",
+                                    f"{ARCHITECTURE_NAMES[name]}: BOXBATH test trajectory 0")
+        if drawn.get("rigidity") and (out_dir / "boxbath_rigidity.png").is_file():
             lines += ["## BOXBATH: keeping the cube rigid", "",
                       "The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
                       "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
-                      "built in (a rigid projection and root nodes), CConv neither.", "", f"![rigidity]({figure.name})",
-                      ""]
-            for name, rollouts in models.items():
-                if rollouts and rollouts[0].predicted.shape[0]:
-                    png = figures.rollout_png(rollouts[0], out_dir / f"boxbath_{name.lower()}.png",
-                                              f"{name}: BOXBATH test trajectory 0")
-                    lines += [f"![{name} on BOXBATH]({png.name})", ""]
+                      "built in (a rigid projection and root nodes), CConv neither.", "",
+                      "![rigidity](boxbath_rigidity.png)", ""]
+            for name in drawn.get("rollouts", []):
+                if (out_dir / f"boxbath_{name}.png").is_file():
+                    lines += [f"![{ARCHITECTURE_NAMES[name]} on BOXBATH](boxbath_{name}.png)", ""]
+    (out_dir / SUMMARY_FILE).write_text(json.dumps(
+        {"note": "written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow no longer "
+                 "holds the runs (their numbers are in each baseline sweep's own summary)",
+         "runs": [], "extras": {"boxbath": drawn} if drawn else {}}, indent=1, sort_keys=True) + "\n")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -347,8 +347,12 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
              f"{sweep.description}. Domain `{sweep.domain}`; paper: {sweep.paper_figure or '—'}. MLflow experiment "
              f"`{sweep.experiment}`; {len(rows)} planned runs, {sum(r.ok for r in rows)} finished.", "",
              *definitions_section()]
+    extras: dict = {}
     if sweep.kind == "stress":
-        lines += sweep_section(sweep, rows, out_dir)
+        section, stress = sweep_section(sweep, rows, out_dir,
+                                        saved=read_summary_extras(out_dir / SUMMARY_FILE).get("stress"))
+        lines += section
+        extras = {"stress": stress} if stress else {}
     elif sweep.kind == "domain":
         lines += domain_tables([(sweep, rows)], compare)
     elif sweep.candidates:
@@ -359,7 +363,8 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
         lines += ablation_section(sweep, rows, out_dir, compare)
     rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir / SUMMARY_FILE))
     lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir), *rollouts]
-    write_run_summary(out_dir / SUMMARY_FILE, sweep, tier, rows, {"rollouts": picks} if picks else None)
+    extras |= {"rollouts": picks} if picks else {}
+    write_run_summary(out_dir / SUMMARY_FILE, sweep, tier, rows, extras or None)
     return _write(out_dir, lines)
 
 

@@ -1,13 +1,16 @@
-"""The stability report: the stress sweeps' (`sweeps/stress/`) MLflow runs compiled into markdown + PNG.
+"""The stress sweeps' (`sweeps/stress/`) reports: each sweep's own section (`sweep_section`, in its report) and
+the stability page that sums them up and links to them.
 
 Per trained domain: the largest stable horizon and scale, error against time for each stress test, the
-monitors that tripped and where, and frames of each generalisation rollout next to its ground truth.
-Everything is read from MLflow (metrics, tags, and the curves each test logged as `stress/<test>.json`).
+monitors that tripped and where, and frames of each generalisation rollout next to its ground truth. Read from
+MLflow (metrics, tags, and the curves each test logged as `stress/<test>.json`), or, once the store is gone,
+from the report's run summary, which keeps the tests' results and what was drawn.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import functools
 import json
 import math
@@ -22,7 +25,7 @@ from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import figures
 from gns_bench.report.cells import budget, budget_statement, fmt
-from gns_bench.report.collect import RunRow, collect, load_rollouts
+from gns_bench.report.collect import SUMMARY_FILE, RunRow, collect, load_rollouts, read_summary_extras
 from gns_bench.report.figures import RIGIDITY_WORDS
 from gns_bench.stress.plots import plot_stress
 from gns_bench.stress.result import StressResult
@@ -47,8 +50,9 @@ def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
     return results
 
 
-def stable_cells(row: RunRow) -> tuple[str, str]:
-    """'largest stable horizon' and 'largest stable scale' cells of one run."""
+def stable_cells(row: RunRow, saved_lengths: list[int] | None = None) -> tuple[str, str]:
+    """'largest stable horizon' and 'largest stable scale' cells of one run (`saved_lengths`: what
+    `_rollout_lengths` gave when its rollouts could still be downloaded, from the run summary)."""
     steps, length = row.metric("stress/horizon/stable_steps"), row.metric("stress/horizon/training_length")
     total = row.metric("stress/horizon/steps")
     if math.isfinite(steps):
@@ -56,7 +60,7 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
                   (", no monitor tripped)" if steps >= total else ", a monitor stopped it)")
         unstable_at_training_length = steps < min(total, length)  # a monitor stopped it that early
     else:
-        horizon, unstable_at_training_length = _evaluation_horizon(row)
+        horizon, unstable_at_training_length = _evaluation_horizon(row, saved_lengths)
     factor = row.metric("stress/scale/largest_stable_factor")
     if math.isfinite(factor):
         particles = row.metric(f"stress/scale/x{factor:g}/particles") if factor else math.nan
@@ -70,12 +74,12 @@ def stable_cells(row: RunRow) -> tuple[str, str]:
     return horizon, scale
 
 
-def _evaluation_horizon(row: RunRow) -> tuple[str, bool]:
+def _evaluation_horizon(row: RunRow, saved_lengths: list[int] | None = None) -> tuple[str, bool]:
     """Without a horizon test, the test split's evaluation rollouts still bound the stable horizon: the fewest
     steps any of them ran before a monitor stopped it, as a multiple of the training length when they ran
     whole trajectories (`eval.rollout_steps` unset). Also: whether a monitor stopped one, or flagged one (a
     monitor outside `eval.stop_on` tripped and the rollout ran on: not stable either)."""
-    lengths = _rollout_lengths(row.artifact_run_id, row.split)
+    lengths = _rollout_lengths(row.artifact_run_id, row.split) or (tuple(saved_lengths) if saved_lengths else None)
     if lengths is None:
         return "not run", False
     count, ran, full = lengths
@@ -156,18 +160,25 @@ def _held_out(domain: str) -> tuple[float, float] | None:
 
 
 def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: str = "##",
-                  statement: bool = False) -> list[str]:
+                  statement: bool = False, saved: dict | None = None) -> tuple[list[str], dict]:
     """One stress sweep: budget (and, with `statement`, what it means against the paper's), stability
-    summary, each test's figure and numbers, generalisation frames."""
+    summary, each test's figure and numbers, generalisation frames. Returns the lines and what a run summary
+    must keep to write them again once MLflow no longer holds the runs (`saved` is that, from the last report:
+    per run id, its tests' results, the per-trajectory generalisation rows and which pictures were drawn)."""
     lines = [f"{level} {sweep.name}: {sweep.description}", "", f"Paper: {sweep.paper_figure or '—'}. Domain "
              f"`{sweep.domain}`; MLflow experiment `{sweep.experiment}`.", ""]
+    saved, kept = saved or {}, {}
     done = [r for r in rows if r.ok]
     if not done:
         states = ", ".join(sorted({r.status for r in rows})) or "missing"
-        return lines + [f"**No finished run at this tier ({states}).** Run `nox -s {sweep.name} -- <tier>`.", ""]
+        return lines + [f"**No finished run at this tier ({states}).** Run `nox -s {sweep.name} -- <tier>`.", ""], kept
     lines += [f"Training: {budget(done)}." + (f" {budget_statement(done)}" if statement else ""), ""]
     for row in done:
-        horizon, scale = stable_cells(row)
+        before = saved.get(row.run_id, {})
+        lengths = None
+        if not math.isfinite(row.metric("stress/horizon/stable_steps")):  # the evaluation bounds the horizon
+            lengths = _rollout_lengths(row.artifact_run_id, row.split) or before.get("rollout_lengths")
+        horizon, scale = stable_cells(row, lengths)
         lines += [f"Run `{row.run_id}` ({row.planned.name}): largest stable horizon **{horizon}**; largest stable "
                   f"scale **{scale}**. Tests skipped: {row.tag('stress/skipped') or 'none'}.", ""]
         stops = trips(row)
@@ -176,7 +187,11 @@ def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: st
             ["No health monitor tripped in any of this run's rollouts.", ""]
         with tempfile.TemporaryDirectory() as tmp:
             workdir = Path(tmp)
-            for result in load_results(row, workdir):
+            results = load_results(row, workdir) or [StressResult(**r) for r in before.get("tests", [])]
+            # Curves in one order, however they were read (the run summary's JSON sorts keys): same figures.
+            results = [dataclasses.replace(r, curves=dict(sorted(r.curves.items())),
+                                           metrics=dict(sorted(r.metrics.items()))) for r in results]
+            for result in results:
                 training = int(row.metric("stress/horizon/training_length")) if result.name == "horizon" else None
                 figure = plot_stress(result, out_dir / f"{sweep.name}_{result.name}.png", training_length=training,
                                      title=f"{sweep.name}: {result.name}")
@@ -184,14 +199,21 @@ def sweep_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, level: st
                           "| metric | value |", "|---|---|",
                           *(f"| {k} | {fmt(v)} |" for k, v in sorted(result.metrics.items())), ""]
                 lines += [f"- {note}" for note in result.notes] + ([""] if result.notes else [])
-            lines += generalisation_lines(sweep, row, out_dir, workdir, level)
-    return lines
+            general, drawn = generalisation_lines(sweep, row, out_dir, workdir, level, before.get("generalisation", {}))
+            lines += general
+        kept[row.run_id] = {"tests": [dataclasses.asdict(r) for r in results], "generalisation": drawn,
+                            **({"rollout_lengths": list(lengths)} if lengths else {})}
+    return lines, kept
 
 
-def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: Path, level: str) -> list[str]:
-    lines = []
+def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: Path, level: str,
+                         saved: dict | None = None) -> tuple[list[str], dict]:
+    """Each generalisation dataset's numbers, error against its context and one rollout drawn; with what was
+    drawn per dataset (kept in the run summary: `saved` stands in for MLflow's artifacts once they are gone)."""
+    lines, drawn, saved = [], {}, saved or {}
     for variant in filter(None, row.tag("generalisation/datasets").split(",")):
         prefix = f"generalisation/{variant}/"
+        before = saved.get(variant, {})
         values = {k[len(prefix):]: v for k, v in row.record.metrics.items() if k.startswith(prefix)}
         lines += [f"{level}# generalisation: {variant}", "",
                   "| rollout MSE | constant velocity, same steps | one-step MSE | OT | MMD | rollouts stopped "
@@ -201,7 +223,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
                   "| " + " | ".join(fmt(values.get(k, math.nan)) for k in (
                       "rollout_mse", "baseline_cv_same_steps_mse", "one_step_mse", "ot", "mmd", "rollout_stopped",
                       "rollout_flagged", "num_trajectories")) + " |", ""]
-        per_trajectory = _per_trajectory(row, variant, workdir)
+        per_trajectory = _per_trajectory(row, variant, workdir) or before.get("per_trajectory", [])
         if per_trajectory and all("context" in r for r in per_trajectory):
             figure = context_figure(per_trajectory, out_dir / f"{sweep.name}_{variant}_context.png",
                                     _held_out(sweep.domain))
@@ -209,6 +231,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
         loaded = load_rollouts(row.artifact_run_id, npz, workdir)
         results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
+        picture, rigidity = before.get("picture", False), before.get("rigidity", False)
         if results:
             errors = {i: metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
                       for i, r in results.items()}
@@ -216,14 +239,19 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
             steps = results[best].predicted.shape[0]
             title = f"{variant}: trajectory {best}, MSE {errors[best]:.3g} over {steps} steps"
             marks = flag_marks(row.tag(f"generalisation/{variant}/rollouts_flagged")).get(best, {})
-            png = figures.rollout_png(results[best], out_dir / f"{sweep.name}_{variant}.png", title, marks=marks)
-            lines += ["Ground truth and GNS on one frame:", "", f"![{variant}]({png.name})", ""]
-            rigid = figures.rigidity_figure(list(loaded), RIGID_PARTICLE_TYPE,
-                                            out_dir / f"{sweep.name}_{variant}_rigidity.png")
-            if rigid is not None:
-                lines += [f"Rigid-body drift ({RIGIDITY_WORDS}):", "",
-                          f"![{variant}: rigid-body drift]({rigid.name})", ""]
-    return lines
+            figures.rollout_png(results[best], out_dir / f"{sweep.name}_{variant}.png", title, marks=marks)
+            picture = True
+            rigidity = figures.rigidity_figure(list(loaded), RIGID_PARTICLE_TYPE,
+                                               out_dir / f"{sweep.name}_{variant}_rigidity.png") is not None
+        picture = picture and (out_dir / f"{sweep.name}_{variant}.png").is_file()
+        rigidity = rigidity and (out_dir / f"{sweep.name}_{variant}_rigidity.png").is_file()
+        if picture:
+            lines += ["Ground truth and GNS on one frame:", "", f"![{variant}]({sweep.name}_{variant}.png)", ""]
+        if rigidity:
+            lines += [f"Rigid-body drift ({RIGIDITY_WORDS}):", "",
+                      f"![{variant}: rigid-body drift]({sweep.name}_{variant}_rigidity.png)", ""]
+        drawn[variant] = {"per_trajectory": per_trajectory, "picture": picture, "rigidity": rigidity}
+    return lines, drawn
 
 
 def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | None = None) -> Path:
@@ -248,13 +276,14 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
         if not done:
             states = ", ".join(sorted({r.status for r in rows})) or "missing"
             lines.append(f"| {sweep.name} | {sweep.domain} | **{states}** | **{states}** | — | — | — |")
+        saved = read_summary_extras(out_dir.parent.parent / sweep.name / tier / SUMMARY_FILE).get("stress") or {}
         for row in done:
-            horizon, scale = stable_cells(row)
+            horizon, scale = stable_cells(row, saved.get(row.run_id, {}).get("rollout_lengths"))
             lines.append(f"| {sweep.name} | {sweep.domain} | {horizon} | {scale} | {len(trips(row))} | "
                          f"{budget([row])} | `{row.run_id}` |")
-    lines += [""]
-    for sweep, rows in collected:
-        lines += sweep_section(sweep, rows, out_dir)
+    lines += ["", "Each sweep's tests, figures and generalisation rollouts are in its own report:", ""]
+    for sweep, _ in collected:
+        lines.append(f"- [{sweep.name}](../../{sweep.name}/{tier}/README.md): {sweep.description}")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from gns_bench.report import write_report
+from gns_bench.report import write_all_reports, write_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, discover_sweeps, load_sweep
 
@@ -33,6 +33,25 @@ def test_every_sweep_has_a_committed_smoke_report_with_readable_figures() -> Non
             with Image.open(readme.parent / figure) as image:
                 assert image.size[0] > 100 and image.size[1] > 100
             assert (readme.parent / figure).stat().st_size < 400_000
+
+
+def test_every_committed_smoke_report_is_rebuilt_from_its_run_summary(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue #20: with no MLflow store at all, `report all --tier smoke` writes every committed smoke report
+    and the front page again, byte for byte, from the run summaries committed beside them (pictures it cannot
+    redraw without the runs' artifacts are the ones already there, still linked)."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
+    copy = tmp_path / "reports"
+    shutil.copytree(REPORTS, copy)
+    before = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    written = write_all_reports("smoke", copy)
+    assert len(written) > len(discover_sweeps())
+    after = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    assert set(after) == set(before)  # nothing lost, nothing new
+    texts = [p for p in before if p.suffix in (".md", ".json") and (p.parts[1:2] == ("smoke",) or len(p.parts) == 1)]
+    assert len(texts) > 2 * len(discover_sweeps())
+    changed = [str(p) for p in texts if after[p] != before[p]]
+    assert not changed, changed
 
 
 def test_committed_domain_table_has_every_domain() -> None:

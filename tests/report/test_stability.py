@@ -13,6 +13,7 @@ import pytest
 
 from gns_bench import tracking
 from gns_bench.cli import main
+from gns_bench.report.report import write_sweep_report
 from gns_bench.report.stability import write_stability_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
@@ -60,27 +61,45 @@ def test_stress_results_are_logged_with_the_training_run(stressed: dict[str, Pat
     assert metrics["stress/horizon/steps"] == 6 and metrics["stress/horizon/stable_steps"] <= 6
 
 
-def test_stability_report_shows_tests_skips_and_figures(stressed: dict[str, Path], tmp_path: Path) -> None:
+def test_stability_page_and_stress_report_show_tests_skips_and_figures(stressed: dict[str, Path], tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     sweep = load_sweep(stressed["sweep"])
     missing = load_sweep(SWEEPS_DIR / "stress" / "boxbath.toml")  # never run in this store: shown as missing
-    readme = write_stability_report("smoke", tmp_path, [sweep, missing])
-    text = readme.read_text()
+    text = write_stability_report("smoke", tmp_path / "stability" / "smoke", [sweep, missing]).read_text()
     row = next(line for line in text.splitlines() if line.startswith(f"| {sweep.name} | tiny |"))
     assert re.search(r"\| \d\S*x \(\d+ of 6 steps, [^)]*\) \| not run \|", row), row
-    assert f"| {missing.name} | boxbath | **missing** |" in text
-    assert f"`{stressed['run_id']}`" in text and "no dataset variant 'tiny-x2'" in text
+    assert f"| {missing.name} | boxbath | **missing** |" in text and f"`{stressed['run_id']}`" in text
+    # The page sums up and links; the figures live in each sweep's own report, drawn once (issue #20.6).
+    assert f"[{sweep.name}](../../{sweep.name}/smoke/README.md)" in text and "![" not in text
+    report = tmp_path / sweep.name / "smoke"
+    readme = write_sweep_report(sweep, "smoke", report)
+    text = readme.read_text()
+    assert "no dataset variant 'tiny-x2'" in text
     assert "no variant 'tiny-long': rolled out the test split over its own length" in text
-    figures = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    figures = [f for f in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text) if f.startswith(sweep.name)]
     assert figures == [f"{sweep.name}_precision.png", f"{sweep.name}_horizon.png"]
     for figure in figures:
-        image = matplotlib.image.imread(tmp_path / figure)
+        image = matplotlib.image.imread(report / figure)
         assert min(image.shape[:2]) > 100 and image.std() > 0
+    # Once the MLflow store is gone, the run summary beside the report writes it again, byte for byte.
+    drawn = {p.name: p.read_bytes() for p in report.iterdir()}
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
+    assert write_sweep_report(sweep, "smoke", report).read_text() == text
+    assert {p.name: p.read_bytes() for p in report.iterdir()} == drawn
 
 
 def test_without_a_horizon_test_the_evaluation_rollouts_bound_the_horizon(stressed: dict[str, Path],
-                                                                          tmp_path: Path) -> None:
+                                                                          tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     sweep = load_sweep(stressed["short"])
-    text = write_stability_report("smoke", tmp_path, [sweep]).read_text()
+    page = tmp_path / "stability" / "smoke"
+    text = write_stability_report("smoke", page, [sweep]).read_text()
+    # Its report and the page, written again from the run summary once the store is gone, say the same.
+    report = write_sweep_report(sweep, "smoke", tmp_path / sweep.name / "smoke").read_text()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
+    assert write_sweep_report(sweep, "smoke", tmp_path / sweep.name / "smoke").read_text() == report
+    assert write_stability_report("smoke", page, [sweep]).read_text() == text
+    monkeypatch.undo()
     row = next(line for line in text.splitlines() if line.startswith(f"| {sweep.name} | tiny |"))
     # the smoke tier's evaluation rolls out 10 steps (sweeps/tiers.toml)
     cell = r"\| \d+ of 10 steps of the 1 test rollout \(evaluation cut at 10 steps\), ([^|]*)\| ([^|]*) \|"
