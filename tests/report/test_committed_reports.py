@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
+from gns_bench.config import TIERS
 from gns_bench.report import write_all_reports, write_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, discover_sweeps, load_sweep
@@ -35,20 +36,23 @@ def test_every_sweep_has_a_committed_smoke_report_with_readable_figures() -> Non
             assert (readme.parent / figure).stat().st_size < 400_000
 
 
-def test_every_committed_smoke_report_is_rebuilt_from_its_run_summary(tmp_path: Path,
-                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue #20: with no MLflow store at all, `report all --tier smoke` writes every committed smoke report
+def test_every_committed_report_is_rebuilt_from_its_run_summary(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue #20: with no MLflow store at all, `report all --tier T` writes every committed report of each tier
     and the front page again, byte for byte, from the run summaries committed beside them (pictures it cannot
     redraw without the runs' artifacts are the ones already there, still linked)."""
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
     copy = tmp_path / "reports"
     shutil.copytree(REPORTS, copy)
+    tiers = sorted({p.parent.name for p in REPORTS.glob("*/*/README.md")} & set(TIERS))
+    assert "smoke" in tiers
     before = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
-    written = write_all_reports("smoke", copy)
-    assert len(written) > len(discover_sweeps())
+    for tier in tiers:
+        assert len(write_all_reports(tier, copy)) > 3
     after = {p.relative_to(copy): p.read_bytes() for p in copy.rglob("*") if p.is_file()}
     assert set(after) == set(before)  # nothing lost, nothing new
-    texts = [p for p in before if p.suffix in (".md", ".json") and (p.parts[1:2] == ("smoke",) or len(p.parts) == 1)]
+    texts = [p for p in before if p.suffix in (".md", ".json") and (p.parts[1:2] in [(t,) for t in tiers]
+                                                                   or len(p.parts) == 1)]
     assert len(texts) > 2 * len(discover_sweeps())
     changed = [str(p) for p in texts if after[p] != before[p]]
     assert not changed, changed
