@@ -258,6 +258,8 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     row = done[0]
     linked = _shared_pictures(row, out_dir)
     if linked:  # another report already draws this run's rollouts: link them, do not copy them
+        for stale in [*out_dir.glob("rollout_*.png"), *out_dir.glob("rollout_*.gif"), out_dir / "rigidity.png"]:
+            stale.unlink(missing_ok=True)  # drawn here by an earlier report of this sweep
         return lines + linked, {}
     with tempfile.TemporaryDirectory() as tmp:
         loaded = load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
@@ -266,7 +268,8 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         errors = {i: metrics.rollout_mse(r.predicted, r.ground_truth[: r.predicted.shape[0]], r.scored_mask())
                   for i, r in results.items()}
         chosen = dict.fromkeys([min(errors, key=errors.get), max(errors, key=errors.get)])  # one when they agree
-        picks = {"run_id": row.run_id, "split": row.split, "rigidity": False, "shown": [
+        picks = {"run_id": row.run_id, "source_run": row.tag("shared_from") or row.run_id, "split": row.split,
+                 "rigidity": False, "shown": [
             {"label": "best" if i == 0 else "worst", "trajectory": index, "mse": float(errors[index]),
              "steps": int(results[index].predicted.shape[0]), "stopped": results[index].stop_reason or ""}
             for i, index in enumerate(chosen)]}
@@ -297,24 +300,33 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
 
 
 def _shared_pictures(row: RunRow, out_dir: Path) -> list[str]:
-    """Links to the rollout pictures of the report that holds `row`'s run, when `row` is a copy of a run
-    another sweep trained and that sweep's report (same tier) drew this very run; none otherwise."""
-    source_run, source = row.tag("shared_from"), row.tag("shared_from_run")
-    if not source_run or "/" not in source:
-        return []
-    source_dir = out_dir.parent.parent / source.split("/")[0] / out_dir.name
-    picks = read_summary_extras(source_dir / SUMMARY_FILE).get("rollouts") or {}
-    if picks.get("run_id") != source_run or not all((source_dir / f"rollout_{s['label']}.png").is_file()
-                                                    for s in picks.get("shown", [])):
-        return []
-    relative = f"../../{source_dir.parent.name}/{source_dir.name}"
-    lines = [f"The lowest rollout MSE is run {run_id_cell(row)}, which {source.split('/')[0]} trained; its pictures "
-             f"are in that report ([{source_dir.parent.name}/{source_dir.name}]({relative}/README.md)):", ""]
-    for shown in picks["shown"]:
-        name = shown["label"]
-        lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
-                  f"![{name} rollout]({relative}/rollout_{name}.png)", ""]
-    return lines
+    """Links to the rollout pictures another report (same tier) already drew of `row`'s training run, when
+    `row` is a copy of a run another sweep trained, or is the run other copies were made from: the report of
+    the sweep that trained it, else any other (domain reports are written first); none otherwise."""
+    source_run = row.tag("shared_from") or row.run_id
+    source = row.tag("shared_from_run")
+    tier_dir = out_dir.name
+    reports_root = out_dir.parent.parent
+    candidates = [reports_root / source.split("/")[0] / tier_dir] if "/" in source else []
+    candidates += sorted(p.parent for p in reports_root.glob(f"*/{tier_dir}/{SUMMARY_FILE}"))
+    for source_dir in candidates:
+        if source_dir.resolve() == out_dir.resolve():
+            continue
+        picks = read_summary_extras(source_dir / SUMMARY_FILE).get("rollouts") or {}
+        drew = picks.get("source_run", picks.get("run_id"))
+        if drew != source_run or not picks.get("shown") or not all(
+                (source_dir / f"rollout_{s['label']}.png").is_file() for s in picks["shown"]):
+            continue
+        relative = f"../../{source_dir.parent.name}/{source_dir.name}"
+        trained = f"which {source.split('/')[0]} trained" if "/" in source else "trained by this sweep"
+        lines = [f"The lowest rollout MSE is run {run_id_cell(row)}, {trained}; its pictures are in "
+                 f"[{source_dir.parent.name}/{source_dir.name}]({relative}/README.md):", ""]
+        for shown in picks["shown"]:
+            name = shown["label"]
+            lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
+                      f"![{name} rollout]({relative}/rollout_{name}.png)", ""]
+        return lines
+    return []
 
 
 def _rollout_title(shown: dict, alone: bool = False) -> str:

@@ -304,3 +304,32 @@ def test_ablation_table_compares_stopped_runs_with_constant_velocity_over_their_
     assert rows["0"][6:] == ["40 (80% stopped)", "2x (0.1 / 0.05)"]
     assert rows["0.0003"][6:] == ["100", "0.5x (0.3 / 0.6)"]
     assert "cover different steps" in text
+
+
+def test_a_run_drawn_in_another_report_is_linked_not_drawn_again(tmp_path: Path) -> None:
+    """Issue #20.6: the rollout pictures of a training run live in one report; a report whose best run is
+    that run (a shared copy, or the run copies were made from) links them, whichever report drew them."""
+    import json
+
+    from gns_bench.report.collect import SUMMARY_FILE, RunRow
+    from gns_bench.report.report import _shared_pictures
+
+    drew = tmp_path / "domain-goop" / "cpu"
+    drew.mkdir(parents=True)
+    (drew / "rollout_best.png").write_bytes(b"png")
+    shown = [{"label": "best", "trajectory": 3, "mse": 0.01, "steps": 394, "stopped": ""}]
+    (drew / SUMMARY_FILE).write_text(json.dumps({"runs": [], "extras": {"rollouts": {
+        "run_id": "copy1", "source_run": "trained", "split": "test", "shown": shown}}}))
+    planned = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")[0]
+
+    def row(run_id: str, tags: dict) -> RunRow:
+        return RunRow(planned, tracking.RunRecord(run_id, planned.name, "FINISHED", 0, tags=tags))
+
+    here = tmp_path / "ablation-noise_std" / "cpu"
+    copy = row("copy2", {"shared_from": "trained", "shared_from_run": "ablation-connectivity_radius/x"})
+    lines = _shared_pictures(copy, here)
+    assert "![best rollout](../../domain-goop/cpu/rollout_best.png)" in lines
+    assert "which ablation-connectivity_radius trained" in lines[0]
+    assert _shared_pictures(row("trained", {}), here)  # the run the copies came from links them too
+    assert _shared_pictures(row("other", {}), here) == []  # a run nobody drew: drawn here
+    assert _shared_pictures(copy, drew) == []  # never a link to itself
