@@ -51,12 +51,16 @@ def machine_key(device: torch.device) -> str:
     return f"{name}; torch {torch.__version__}"
 
 
-def usable_cores() -> int:
+def usable_core_ids() -> list[int]:
     """The cores this process may run on (its CPU affinity: a container's or a job scheduler's share)."""
     try:
-        return len(os.sched_getaffinity(0))
+        return sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return os.cpu_count() or 1
+        return list(range(os.cpu_count() or 1))
+
+
+def usable_cores() -> int:
+    return len(usable_core_ids())
 
 
 def set_threads(requested: int | None) -> int:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from gns_bench.bench.parallel import measure_parallel, write_parallel_report
-from gns_bench.sweep.launchers import usable_core_ids
+from gns_bench.devices import usable_core_ids
 
 
 def test_parallel_timing_runs_both_ways_and_reports_the_ratio(tmp_path: Path) -> None:

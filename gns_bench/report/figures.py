@@ -59,8 +59,9 @@ def _spans_decades(data: np.ndarray) -> bool:
 
 
 def _save(fig: plt.Figure, axes: Sequence[plt.Axes], path: Path) -> Path:
-    """Legend on the first panel, then a tight, small PNG."""
-    axes[0].legend(fontsize=7)
+    """Legend on the first panel (when it has labelled lines), then a tight, small PNG."""
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)

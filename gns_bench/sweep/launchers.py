@@ -16,6 +16,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import TypeVar
 
+from gns_bench.devices import usable_core_ids
 from gns_bench.sweep.spec import PlannedRun
 
 Result = TypeVar("Result")
@@ -66,22 +67,17 @@ def core_slices(cores: list[int], parallel: int) -> list[list[int]]:
     return slices
 
 
-def usable_core_ids() -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return list(range(os.cpu_count() or 1))
-
-
 def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
     """A worker's initialiser: take one slice of cores for this process (torch's threads follow its affinity,
     `devices.set_threads`)."""
     cores = slices.get()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, cores)
-    import torch  # a spawned process may have imported torch already (with the parent's module), its pool sized
+    # A spawned process may have imported torch before this ran (with the parent's main module), its thread
+    # pool then sized to every core: size it to this process's share.
+    import torch
 
-    torch.set_num_threads(len(cores))  # to every core: size it to this process's share
+    torch.set_num_threads(len(cores))
 
 
 def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], parallel: int,

@@ -13,7 +13,8 @@ from mlflow.tracking import MlflowClient
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.config import resolve_for_dataset
-from gns_bench.sweep.launchers import core_slices, usable_core_ids
+from gns_bench.devices import usable_core_ids
+from gns_bench.sweep.launchers import core_slices
 from gns_bench.sweep.runner import prepare, run_key, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, discover_sweeps, load_sweep
 
