@@ -49,10 +49,10 @@ def measure_parallel(parallel: int, *, steps: int = 300, device: str = "auto", r
         seconds: dict[int, float] = {}
         hardware: dict[int, str] = {}
         try:
-            os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{root / 'mlflow-plan.db'}"
+            tracking.use_tracking_uri(f"sqlite:///{root / 'mlflow-plan.db'}")
             prepare(sweep, "smoke", root / "data", progress=False)  # the dataset made before either timing
             for at_once in (1, parallel):
-                os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{root / f'mlflow-{at_once}.db'}"
+                tracking.use_tracking_uri(f"sqlite:///{root / f'mlflow-{at_once}.db'}")
                 started = time.perf_counter()
                 outcomes = run_sweep(sweep, "smoke", data_root=root / "data", runs_root=root / f"runs-{at_once}",
                                      progress=False, share=False, echo=lambda _: None, parallel=at_once)
@@ -65,7 +65,7 @@ def measure_parallel(parallel: int, *, steps: int = 300, device: str = "auto", r
             if previous is None:
                 os.environ.pop("MLFLOW_TRACKING_URI", None)
             else:
-                os.environ["MLFLOW_TRACKING_URI"] = previous
+                tracking.use_tracking_uri(previous)
     return {"runs": parallel, "steps": steps, "hardware_one_at_a_time": hardware[1],
             "hardware_at_once": hardware[parallel], "seconds_one_at_a_time": seconds[1],
             "seconds_at_once": seconds[parallel], "speedup": seconds[1] / seconds[parallel]}

@@ -25,11 +25,11 @@ from gns_bench.bench.measure import (
     rollout_breakdown,
     skinny_gemm_gflops,
     synthetic_scene,
+    synthetic_train_step,
     train_step_seconds,
 )
 from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.devices import resolve_device
-from gns_bench.model.precision import autocast
 from gns_bench.train import autotune
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
@@ -109,17 +109,11 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
     model = build_model(ModelConfig(), scene, device)
     window, types = scene.window.to(device), scene.particle_type.to(device)
     edges = model.build_graph(window[:, -1])
-    target = torch.zeros(window.shape[0], window.shape[2], device=device)
     optimisers: dict[int, torch.optim.Optimizer] = {}
 
     def step(candidate, precision: str) -> None:
         optimiser = optimisers.setdefault(id(candidate), torch.optim.Adam(candidate.parameters(), lr=0.0))
-        with autocast(device, precision):
-            predicted = candidate(window, types, edge_index=edges)
-        loss = (predicted.float() - target).square().sum(-1).mean()
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
+        synthetic_train_step(candidate, optimiser, window, types, edges, precision)
 
     config = TrainConfig(precision="auto", compile="auto" if settings.compile else False)
     choice = autotune.choose(config, model, step, window.shape[0], device, steps, use_cache=False)
