@@ -57,8 +57,23 @@ class SweepResult:
     error: str = ""  # the sweep could not run at all (e.g. its dataset failed to generate)
 
 
-def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print) -> None:
-    """Print each sweep's runs and their status, generating nothing."""
+def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print, *,
+                  timed: bool = False) -> None:
+    """Print each sweep's runs and their status, generating nothing. `timed`: with each run's step rate
+    measured here and its training time, and the campaign's total still to train, a point two sweeps share
+    counted once (`sweep/timing.py`)."""
+    if timed:
+        from gns_bench.sweep.timing import timed_plan, total_line
+        from gns_bench.train.rate import StepRate
+
+        measured: dict[str, StepRate] = {}
+        counted: set[str] = set()
+        seconds, runs, missing = 0.0, 0, 0
+        for path in campaign.sweeps:
+            more = timed_plan(load_sweep(path), tier, data_root, measured=measured, counted=counted, echo=echo)
+            seconds, runs, missing = seconds + more[0], runs + more[1], missing + more[2]
+        echo(f"campaign {campaign.name} ({tier}): " + total_line(seconds, runs, missing))
+        return
     for path in campaign.sweeps:
         sweep = load_sweep(path)
         runs, status, _ = prepare(sweep, tier, data_root, generate=False)

@@ -187,6 +187,10 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                         "CPU cores; cpu, the campaign's budget, at most 30 minutes a run on 2 cores (issue #19); "
                         "paper, the paper's 20M steps")
     p.add_argument("--dry-run", action="store_true", help="print the table of runs and their status; run nothing")
+    p.add_argument("--time", action="store_true",
+                   help="like --dry-run, and measure each run's training steps a second here on its own data (a few "
+                        "steps of its own loop), with the training time its steps would take and the total still "
+                        "to train: how a tier's steps are chosen (issue #19)")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
     p.add_argument("--parallel", type=int, default=1, metavar="N",
@@ -216,6 +220,11 @@ def cmd_sweep(args: argparse.Namespace) -> None:
     from gns_bench.sweep.spec import load_sweep
 
     sweep = load_sweep(args.file)
+    if args.time:
+        from gns_bench.sweep.timing import timed_plan
+
+        timed_plan(sweep, args.tier, args.data_root, share=not args.no_share, only=args.only)
+        return
     if args.dry_run:
         runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share,
                                   only=args.only)
@@ -246,6 +255,9 @@ def _add_campaign(sub: argparse._SubParsersAction) -> None:
     p.add_argument("file", type=Path, help="campaign TOML, e.g. sweeps/campaigns/paper.toml")
     p.add_argument("--tier", default="smoke", choices=TIERS, help="the tier to run every sweep at")
     p.add_argument("--dry-run", action="store_true", help="print every sweep's runs and their status; run nothing")
+    p.add_argument("--time", action="store_true",
+                   help="like --dry-run, and measure every run's training steps a second here on its own data, with "
+                        "the training time each run's steps would take and the campaign's total still to train")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: job arrays (SLURM, else local processes)")
     p.add_argument("--parallel", type=int, default=1, metavar="N",
@@ -261,8 +273,8 @@ def cmd_campaign(args: argparse.Namespace) -> None:
     from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
 
     campaign = load_campaign(args.file)
-    if args.dry_run:
-        plan_campaign(campaign, args.tier, args.data_root)
+    if args.dry_run or args.time:
+        plan_campaign(campaign, args.tier, args.data_root, timed=args.time)
         return
     results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                            reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster,

@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from gns_bench.campaign import load_campaign, run_campaign
+from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
+from gns_bench.datasets import ensure_dataset
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError
+from gns_bench.train.rate import StepRate
 
 SWEEP = '''description = "{name}"
 domain = "tiny"
@@ -71,3 +73,32 @@ def test_the_paper_campaign_lists_every_domain_then_the_ablations() -> None:
     assert folders == ["domains"] * 16 + ["ablations"] * 12 + ["baselines"] * 7
     assert [p.stem for p in campaign.sweeps[16:22]] == ["message_passing_steps", "connectivity_radius", "noise_std",
                                                          "processor_sharing", "position_encoding", "noise_correction"]
+
+
+def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(sweeps: Path, tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    from gns_bench.sweep import timing
+
+    (sweeps / "ablations" / "same.toml").write_text(SWEEP.format(name="the point of 'one'", steps=1))
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["domains/one.toml", "domains/two.toml", "ablations/same.toml"]\n')
+    campaign = load_campaign(path, sweeps)
+    measured = []
+
+    def fake_rate(config, dataset_dir, steps, warm_up=5):
+        measured.append(config.model.message_passing_steps)
+        return StepRate(4.0 * config.model.message_passing_steps, "fp32", steps)  # M=1: 4 steps/s, M=2: 8
+
+    monkeypatch.setattr(timing, "measure_step_rate", fake_rate)
+    lines: list[str] = []
+    plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
+    assert measured == [] and lines[-1].endswith("to train: 0 runs, 0 s at the rates measured here (and 3 runs "
+                                                  "whose dataset is not generated yet, not timed)")
+    ensure_dataset("tiny", "smoke", 0, tmp_path / "data", progress=False)
+    lines.clear()
+    plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
+    assert measured == [1, 2]  # 'same' costs what 'one' costs: measured once
+    first_row = "\n".join(lines).splitlines()[3]  # 'one': timing, title, header, its run
+    assert "4 (fp32)" in first_row and first_row.endswith("5 s"), first_row  # 20 smoke steps at 4 steps/s
+    # 20 steps at 4/s and at 8/s; 'same' is the run 'one' trains (the same key), so counted once
+    assert lines[-1] == "campaign c (smoke): to train: 2 runs, 8 s at the rates measured here"

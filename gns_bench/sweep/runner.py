@@ -241,17 +241,20 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     return runs, status, shared
 
 
-def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str]) -> str:
-    header = ["#", "run", *[axis.split(".")[-1] for axis in sweep.axes], "seed", "dataset", "status"]
+def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str],
+                columns: dict[str, dict[str, str]] | None = None) -> str:
+    """The table of runs and their status; `columns`: more columns, header -> cell by run name."""
+    columns = columns or {}
+    header = ["#", "run", *[axis.split(".")[-1] for axis in sweep.axes], "seed", "dataset", "status", *columns]
     rows = [[str(i), r.name, *[str(r.axes[a]) for a in sweep.axes], str(r.seed),
              f"{r.training_domain}-{r.dataset_tier}-s{r.dataset_seed}"
              + (f" (tested on {r.domain}-{r.evaluated_on})" if r.evaluated_elsewhere else ""),
-             status.get(r.name, "")]
+             status.get(r.name, ""), *[cells.get(r.name, "") for cells in columns.values()]]
             for i, r in enumerate(runs)]
     widths = [max(len(row[c]) for row in [header, *rows]) for c in range(len(header))]
     lines = [f"sweep {sweep.name} (tier {tier}, MLflow experiment '{sweep.experiment}'): {len(runs)} runs"]
     for row in [header, *rows]:
-        lines.append("  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)))
+        lines.append("  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip())
     return "\n".join(lines)
 
 

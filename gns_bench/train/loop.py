@@ -236,13 +236,15 @@ def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path
 def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resume: bool = False,
           on_log: Callable[[int, dict[str, float]], None] | None = None,
           progress: bool = True, trajectories: list[Trajectory] | None = None,
-          on_eval: Callable[[LearnedSimulator, int, float], None] | None = None) -> TrainResult:
+          on_eval: Callable[[LearnedSimulator, int, float], None] | None = None,
+          stop_after: int | None = None) -> TrainResult:
     """Train to `config.train.steps` (or `train.max_wall_seconds`), checkpointing into `out_dir`.
 
     `on_log(step, metrics)` gets the loss. `on_eval(simulator, step, training_seconds)` gets, every
     `train.eval_every` steps and at the end (and at step 0 of a fresh run), an uncompiled copy of the model in
     eval mode; its time is not training time. `trajectories`: the dataset's train split when the caller has
-    loaded (and so validated) it already.
+    loaded (and so validated) it already. `stop_after`: return after this many steps of this call, as part of a
+    run of `train.steps` (the step-rate probe, `gns_bench/train/rate.py`: the run's own settings and schedule).
 
     Launched by torchrun (WORLD_SIZE > 1), it trains data-parallel: each process takes
     `train.batch_size` graphs of every step's batch; only rank 0 logs and writes checkpoints.
@@ -322,7 +324,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         evaluate_now(0)
     simulator.train()
     try:
-        while step < tc.steps:
+        while step < tc.steps and (stop_after is None or step - start_step < stop_after):
             if tc.max_wall_seconds is not None and clock.total >= tc.max_wall_seconds:
                 break
             step_started = time.perf_counter()

@@ -12,6 +12,7 @@ from gns_bench.data.format import load_split
 from gns_bench.evaluate.evaluate import evaluate
 from gns_bench.train.checkpoints import load_simulator
 from gns_bench.train.loop import learning_rate, train
+from gns_bench.train.rate import measure_step_rate
 
 QUICK = ["model.message_passing_steps=2", "model.latent_size=64", "model.mlp_hidden_size=64",
          "train.batch_size=8", "train.learning_rate=2e-3", "train.learning_rate_decay_steps=2000",
@@ -45,6 +46,22 @@ def test_interrupt_and_resume_continues_the_same_loss_curve(tiny_dataset: Path, 
     rest = train(config, tiny_dataset, tmp_path / "resumed", resume=True, progress=False)
     assert rest.start_step == 13 and rest.final_step == 30
     assert part.losses + rest.losses == straight.losses  # bit for bit
+
+
+def test_stop_after_runs_the_start_of_the_whole_run_and_the_rate_probe_uses_it(tiny_dataset: Path,
+                                                                               tmp_path: Path) -> None:
+    config = load_config(None, QUICK + ["train.steps=30", "train.checkpoint_every=7"])
+    straight = train(config, tiny_dataset, tmp_path / "straight", progress=False)
+    start = train(config, tiny_dataset, tmp_path / "start", progress=False, stop_after=9)
+    assert start.final_step == 9 and start.losses == straight.losses[:9]  # the run's own schedule and batches
+    rest = train(config, tiny_dataset, tmp_path / "start", resume=True, progress=False)
+    assert rest.final_step == 30 and start.losses + rest.losses == straight.losses
+
+    rate = measure_step_rate(config, tiny_dataset, steps=6, warm_up=2)
+    assert rate.steps_per_second > 0 and rate.settings == "fp32" and rate.measured_steps == 6
+    assert rate.seconds_for(30) == pytest.approx(30 / rate.steps_per_second)
+    with pytest.raises(ValueError, match="the run has 30 steps, fewer than the 31 to measure"):
+        measure_step_rate(config, tiny_dataset, steps=30, warm_up=1)
 
 
 def test_resume_refuses_a_different_model(tiny_dataset: Path, tmp_path: Path) -> None:
