@@ -51,5 +51,26 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
     pick = saved["autotune"]  # what train.precision = "auto" picks, judged against the variants timed at length
     assert pick["precision"] in ("fp32", "bf16") and set(pick["probe_step_s"]) == {"fp32", "bf16"}
     assert "auto within 5% of the fastest variant" in readme and f"auto picked {pick['precision']}" in readme
+    assert "waterdrop rollout step <= 25 ms (bf16" in readme and "its matmuls alone need" in readme
     with Image.open(tmp_path / "bench_scaling.png") as image:
         assert image.size[0] > 300
+
+
+def test_compiled_rollout_steps_are_timed_after_the_eager_ones_and_judged_against_the_target() -> None:
+    import torch
+
+    from gns_bench.bench.report import rollout_target
+    from gns_bench.bench.run import BenchSettings, measure_inference
+
+    settings = BenchSettings(inference_domains=[("waterdrop", 2, 300), ("boxbath", 3, 200)], repeats=1,
+                             compile=True, compiled_rollout_domains=("waterdrop",))
+    rows = measure_inference(settings, torch.device("cpu"))
+    assert [(r["domain"], r["precision"], r["compiled"]) for r in rows] == [
+        ("waterdrop", "fp32", False), ("waterdrop", "bf16", False), ("boxbath", "fp32", False),
+        ("boxbath", "bf16", False), ("waterdrop", "fp32", True), ("waterdrop", "bf16", True)]
+    assert all(0 < r["matmul_floor_s"] and r["forward_gflop"] > 0 for r in rows)
+    fastest = min((r for r in rows if r["domain"] == "waterdrop" and r["precision"] == "bf16"),
+                  key=lambda r: r["step_s"])
+    target = rollout_target({"inference": rows})
+    assert target["met"] == (fastest["step_s"] <= 0.025)
+    assert target["measured"].startswith(f"{fastest['step_s'] * 1e3:.1f} ms (")

@@ -52,6 +52,8 @@ class BenchSettings:
     repeats: int = 5
     gemm_sizes: tuple[int, ...] = (1024, 2048, 4096)
     compile: bool = True  # also time the training step under torch.compile (~1 min of compilation each)
+    # ... and the rollout step of these domains as `eval.compile` runs it (~15 s of compiling each)
+    compiled_rollout_domains: tuple[str, ...] = ("waterdrop",)
 
     @classmethod
     def quick(cls) -> BenchSettings:
@@ -122,18 +124,32 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
 
 
 def measure_inference(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
-    rows = []
-    for domain, dim, particles in settings.inference_domains:
+    """A rollout step of each domain's size, eager in fp32 and bf16, then compiled (`eval.compile`) for
+    `settings.compiled_rollout_domains` when `settings.compile` (compiled last: see `rollout_breakdown`).
+    Each row carries the time the network's matmuls alone need at the [E, 128] x [128, 128] GEMM rate
+    measured here (`matmul_floor_s`): how close a step is to what this machine's matmuls allow."""
+    rows, skinny = [], {}
+    variants = [(False, domain) for domain in settings.inference_domains]
+    if settings.compile:
+        variants += [(True, domain) for domain in settings.inference_domains
+                     if domain[0] in settings.compiled_rollout_domains]
+    for compiled, (domain, dim, particles) in variants:
         scene = synthetic_scene(particles, dim, domain_radius(domain, dim))
         model = build_model(ModelConfig(), scene, device)
         for precision in ("fp32", "bf16"):
-            b = rollout_breakdown(model, scene, device, precision, settings.repeats)
-            rows.append({"domain": domain, "dim": dim, "precision": precision, "particles": particles,
-                         "edges": b.num_edges, "step_s": b.total_s, "neighbour_search_s": b.neighbour_search_s,
-                         "features_s": b.features_s, "gnn_s": b.gnn_s, "integration_s": b.integration_s,
-                         "verlet_search_s": b.verlet_search_s,
+            b = rollout_breakdown(model, scene, device, precision, settings.repeats, compiled)
+            dtype = torch.float32 if precision == "fp32" else torch.bfloat16
+            if (b.num_edges, precision) not in skinny:
+                skinny[b.num_edges, precision] = skinny_gemm_gflops(b.num_edges, 128, dtype, device)
+            flops = forward_flops(model, particles, b.num_edges)
+            rows.append({"domain": domain, "dim": dim, "precision": precision, "compiled": compiled,
+                         "particles": particles, "edges": b.num_edges, "step_s": b.total_s,
+                         "neighbour_search_s": b.neighbour_search_s, "features_s": b.features_s, "gnn_s": b.gnn_s,
+                         "integration_s": b.integration_s, "verlet_search_s": b.verlet_search_s,
                          "search_share": b.neighbour_search_s / b.total_s,
-                         "search_and_graph_share": (b.neighbour_search_s + b.features_s) / b.total_s})
+                         "search_and_graph_share": (b.neighbour_search_s + b.features_s) / b.total_s,
+                         "forward_gflop": flops / 1e9,
+                         "matmul_floor_s": flops / (skinny[b.num_edges, precision] * 1e9)})
     return rows
 
 
@@ -214,7 +230,8 @@ def _log(results: dict[str, Any], paths: list[Path]) -> None:
             metrics[f"train/{key}_{row['precision']}_steps_per_s"] = row["steps_per_s"]
             metrics[f"train/{key}_{row['precision']}_fraction_of_peak"] = row["fraction_of_peak"]
         for row in results["inference"]:
-            metrics[f"rollout/{row['domain']}_{row['precision']}_step_s"] = row["step_s"]
+            variant = "_compiled" if row.get("compiled") else ""
+            metrics[f"rollout/{row['domain']}_{row['precision']}{variant}_step_s"] = row["step_s"]
         run.log_metrics(metrics)
         for path in paths:
             run.log_artifact(path, "bench")

@@ -18,7 +18,7 @@ from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
-from gns_bench.model.precision import dtype_of, network_dtype
+from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 ONE_STEP_BATCH = 16  # windows per forward pass when measuring one-step error
@@ -163,6 +163,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
+    rolled_out_by = compiled_for_inference(simulator) if config.compile else simulator
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
         monitors = (arm(health_monitors(simulator, traj, config.rollout_steps, bounds), config.stop_on)
                     if config.monitors else [])
@@ -172,7 +173,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
                          disable=not progress)  # within a trajectory: steps/s and ETA
         run_hooks = (*hooks, lambda state, bar=steps_bar: bar.update(1), *monitors)
         started = time.perf_counter()
-        result = rollout(simulator, traj, config.rollout_steps, run_hooks, device,
+        result = rollout(rolled_out_by, traj, config.rollout_steps, run_hooks, device,
                          neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds)
         rollout_seconds = time.perf_counter() - started
         steps_bar.set_description(f"trajectory {index} one-step and distributional metrics")

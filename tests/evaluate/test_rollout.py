@@ -102,6 +102,24 @@ def test_bf16_rollout_stays_close_to_fp32(untrained: LearnedSimulator, tiny_data
     assert 0 < difference < 1e-3, difference  # rounding shows, but positions do not drift far in 10 steps
 
 
+def test_a_compiled_rollout_equals_the_eager_one_and_leaves_the_model_alone(untrained: LearnedSimulator,
+                                                                            tiny_dataset: Path) -> None:
+    from gns_bench.config import ConfigError, EvalConfig
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.model.precision import compiled_for_inference
+
+    trajectories = load_split(tiny_dataset, "test")[:1]
+    base = dict(distribution_steps=0, monitors=False, rollout_steps=15, one_step_windows=3)
+    eager = evaluate(untrained, trajectories, EvalConfig(**base), progress=False)
+    compiled = evaluate(untrained, trajectories, EvalConfig(**base, compile=True), progress=False)
+    np.testing.assert_allclose(compiled.rollouts[0].predicted, eager.rollouts[0].predicted, rtol=0, atol=1e-5)
+    assert compiled.metrics["rollout_mse"] == pytest.approx(eager.metrics["rollout_mse"], rel=1e-3)
+    assert untrained.network._compiled_call_impl is None  # a frozen copy was compiled, not the model
+    assert compiled_for_inference(untrained).network._compiled_call_impl is not None
+    with pytest.raises(ConfigError, match="eval.compile"):
+        EvalConfig(compile=True, precision="fp64").validate()
+
+
 def test_static_edge_reuse_changes_nothing(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
     traj = load_split(tiny_dataset, "test")[0]
     assert (traj.position == traj.position[:1]).all(axis=(0, 2)).sum() == 11  # the static floor row
