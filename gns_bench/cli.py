@@ -314,19 +314,25 @@ def cmd_report(args: argparse.Namespace) -> None:
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark training and rollout speed against this machine's limits")
-    p.add_argument("--out", type=Path, default=Path("reports/bench"), help="where bench.json, README.md, PNG go")
+    p.add_argument("--out", type=Path, default=None,
+                   help="where bench.json, README.md, PNG go (default: reports/bench/<machine>/, e.g. "
+                        "amd-epyc-avx512bf16, and reports/bench/README.md then compares every machine measured)")
     p.add_argument("--quick", action="store_true", help="small sizes: seconds, for a first look")
     p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
     p.add_argument("--no-mlflow", action="store_true", help="do not log the results to MLflow")
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
-    from gns_bench.bench.run import BenchSettings, run_bench
+    from gns_bench.bench.report import BENCH_ROOT, write_bench_index
+    from gns_bench.bench.run import BenchSettings, bench_dir, run_bench
 
     settings = BenchSettings.quick() if args.quick else BenchSettings()
     settings.device = args.device
-    run_bench(args.out, settings, log_to_mlflow=not args.no_mlflow)
-    print(args.out / "README.md")
+    out = args.out or bench_dir(BENCH_ROOT, settings.device)
+    run_bench(out, settings, log_to_mlflow=not args.no_mlflow)
+    print(out / "README.md")
+    if args.out is None:
+        print(write_bench_index(BENCH_ROOT))
 
 
 def _add_ui(sub: argparse._SubParsersAction) -> None:

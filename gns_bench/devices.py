@@ -41,6 +41,21 @@ def cpu_features() -> list[str]:
     return []
 
 
+def machine_slug(device: torch.device) -> str:
+    """A folder name for what a benchmark ran on: the GPU's name, or the CPU model with its bf16 matrix units
+    ("intel-xeon-processor-amx", "amd-epyc-avx512bf16"), which decide what is fastest on it."""
+    import re
+
+    if device.type == "cuda":
+        name = f"cuda {torch.cuda.get_device_name(device)}"
+    else:
+        features = cpu_features()
+        unit = "amx" if "amx_tile" in features else "avx512bf16" if "avx512_bf16" in features else ""
+        name = f"{cpu_model()} {unit}"
+    name = re.sub(r"\((r|tm)\)", "", name.lower())
+    return re.sub(r"[^a-z0-9]+", "-", name).strip("-")
+
+
 def machine_key(device: torch.device) -> str:
     """What a speed measurement holds for: the GPU, or the CPU model, its relevant features and the thread
     count; with torch's version."""

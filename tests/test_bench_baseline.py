@@ -39,9 +39,14 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
 
     from PIL import Image
 
+    from gns_bench.bench.report import write_bench_index
     from gns_bench.bench.run import BenchSettings, run_bench
 
-    results = run_bench(tmp_path, BenchSettings.tiny(), log_to_mlflow=False)
+    results = run_bench(tmp_path / "this-machine", BenchSettings.tiny(), log_to_mlflow=False)
+    index = write_bench_index(tmp_path).read_text()  # every machine's targets, linking to its tables
+    assert f"## {results['environment']['hardware']} (quick sizes)" in index
+    assert "[this-machine/](this-machine/README.md)" in index and "waterdrop rollout step <= 25 ms" in index
+    tmp_path = tmp_path / "this-machine"
     saved = json.loads((tmp_path / "bench.json").read_text())
     assert saved["train"][0]["steps_per_s"] > 0 and len(saved["train"]) == 4
     assert {r["precision"] for r in results["inference"]} == {"fp32", "bf16"}

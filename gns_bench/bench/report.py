@@ -10,8 +10,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-# Targets of the speed issue, as ratios measured in one run.
-TARGET_FRACTION_OF_PEAK = 0.60
+BENCH_ROOT = Path("reports/bench")  # one folder per machine measured, and README.md comparing them
+
+# Targets of the speed issues, as ratios measured in one run. The training step's FLOP rate against the rate of
+# the GEMM that dominates it, [E,128] x [128,128], measured beside it (issue #22: fp32 >= 60%, bf16 >= 50%).
+TARGET_FRACTION_OF_SKINNY = {"fp32": 0.60, "bf16": 0.50}
 TARGET_SEARCH_SHARE = 0.15
 TARGET_SPEEDUP = 3.0
 TARGET_MEMORY_MB = 24 * 1024
@@ -49,11 +52,12 @@ def targets(results: dict[str, Any]) -> list[dict[str, Any]]:
     rows = []
     for precision in ("fp32", "bf16"):
         ours, base = _fastest(results, False, precision), _fastest(results, True, precision)
-        rows.append({"target": f"training step >= {TARGET_FRACTION_OF_PEAK:.0%} of GEMM peak ({precision})",
-                     "measured": f"{ours['fraction_of_peak']:.1%} of {ours['gemm_peak_gflops']:.0f} GFLOP/s "
-                                 f"(square GEMM); {ours['fraction_of_skinny']:.1%} of the [E,128]x[128,128] GEMM "
-                                 f"({_variant(ours)})",
-                     "met": ours["fraction_of_peak"] >= TARGET_FRACTION_OF_PEAK})
+        goal = TARGET_FRACTION_OF_SKINNY[precision]
+        rows.append({"target": f"training step >= {goal:.0%} of the [E,128]x[128,128] GEMM rate ({precision})",
+                     "measured": f"{ours['fraction_of_skinny']:.1%} of {ours['skinny_gemm_gflops']:.0f} GFLOP/s "
+                                 f"({_variant(ours)}); {ours['fraction_of_peak']:.1%} of the square-GEMM peak, "
+                                 f"{ours['gemm_peak_gflops']:.0f} GFLOP/s",
+                     "met": ours["fraction_of_skinny"] >= goal})
         speedup = ours["steps_per_s"] / base["steps_per_s"]
         rows.append({"target": f">= {TARGET_SPEEDUP:.0f}x PyG MessagePassing baseline ({precision})",
                      "measured": f"{speedup:.2f}x, ours {_variant(ours)} (losses after the same steps: "
@@ -207,4 +211,32 @@ def _plot(results: dict[str, Any], path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+    return path
+
+
+def write_bench_index(root: Path) -> Path:
+    """`root/README.md`: the targets of every machine benchmarked under `root` (each folder's bench.json),
+    side by side, each linking to its full tables. Machines differ in what is fastest (issue #22), so each
+    keeps its own numbers."""
+    import json
+
+    lines = ["# gns-bench benchmark, by machine", "",
+             "Each folder holds one `gns-bench bench` run on one kind of machine (tables, plots, `bench.json`); "
+             "the targets it was held to are repeated here. Ratios compare numbers measured in the same run.", ""]
+    found = 0
+    for folder in sorted(p.parent for p in root.glob("*/bench.json")):
+        results = json.loads((folder / "bench.json").read_text())
+        env = results["environment"]
+        quick = " (quick sizes)" if results.get("settings", {}).get("repeats", 5) < 5 else ""
+        lines += [f"## {env['hardware']}{quick}", "",
+                  f"[{folder.name}/]({folder.name}/README.md): device `{env['device']}`, torch {env['torch']}, "
+                  f"{env['threads']} threads.", ""]
+        lines += _table([{**r, "met": "yes" if r["met"] else "**no**"} for r in targets(results)],
+                        [("target", "target", ""), ("measured", "measured", ""), ("met", "met", "")])
+        lines.append("")
+        found += 1
+    if not found:
+        lines.append(f"No benchmark yet: run `gns-bench bench` (it writes {root}/<machine>/).")
+    path = root / "README.md"
+    path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -193,7 +193,14 @@ def measure_scaling(settings: BenchSettings, timeout_s: int = 1800) -> list[dict
     return rows
 
 
-def run_bench(out_dir: str | Path = "reports/bench", settings: BenchSettings | None = None,
+def bench_dir(root: Path, device: str = "auto") -> Path:
+    """`root/<machine>`: each kind of machine keeps its own benchmark (devices.machine_slug)."""
+    from gns_bench.devices import machine_slug
+
+    return root / machine_slug(resolve_device(device))
+
+
+def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
               log_to_mlflow: bool = True) -> dict[str, Any]:
     from gns_bench.bench.report import write_bench_report
 
