@@ -259,8 +259,9 @@ class EvalConfig:
     neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
     precision: Literal["fp32", "bf16", "fp64"] = "fp32"  # bf16: autocast the network; fp64: a reference
     # torch.compile the network for rollouts, its weights frozen as constants (model/precision.py
-    # `compiled_for_inference`): about 15 s of compiling a process, then 1.2x (fp32) to 1.6x (bf16) faster
-    # forward passes on a 2-core AMD EPYC; the same function up to float rounding. Not with fp64.
+    # `compiled_for_inference`): about 15 s of compiling a process; the same function up to float rounding.
+    # A gain in bf16 (WATERDROP rollout step 43 -> 31 ms on a 2-core AMD EPYC, reports/bench), not in fp32
+    # (118 -> 139 ms in that run). Not with fp64.
     compile: bool = False
 
     def validate(self) -> None:

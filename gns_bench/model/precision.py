@@ -46,10 +46,10 @@ def compiled_for_inference(simulator: nn.Module) -> nn.Module:
     """A copy of `simulator` whose network is compiled for rollouts (`eval.compile`): `torch.compile` with
     dynamic shapes (one compilation serves every particle and edge count) and inductor's freezing, which
     treats the fixed weights as constants (pre-packed for oneDNN on CPU, linear + ReLU fused). The caller's
-    model is untouched: frozen weights would go stale if it trained on. Measured on an AMD EPYC, 2 threads
-    (WATERDROP-sized graph, 1,000 particles, 14.7k edges, the paper's model): the network's forward pass
-    went from 45 to 28 ms in bf16 and from 113 to 91 ms in fp32, after about 15 s of compiling
-    (`gns-bench bench` times it on the machine at hand). Only the GNS's network is compiled; CConv and
+    model is untouched: frozen weights would go stale if it trained on. On an AMD EPYC, 2 threads (WATERDROP-
+    sized graph, 1,000 particles, 14.7k edges, the paper's model), a bf16 rollout step went from 43 to 31 ms
+    after about 15 s of compiling; in fp32 it brought nothing (118 against 139 ms in the same bench run;
+    `gns-bench bench` times both on the machine at hand). Only the GNS's network is compiled; CConv and
     DPI-Net run as they are."""
     import copy
 
