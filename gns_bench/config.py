@@ -261,10 +261,13 @@ class EvalConfig:
     # torch.compile the network for rollouts, its weights frozen as constants (model/precision.py
     # `compiled_for_inference`): about 15 s of compiling a process; the same function up to float rounding.
     # A gain in bf16 (WATERDROP rollout step 43 -> 31 ms on a 2-core AMD EPYC, reports/bench), not in fp32
-    # (118 -> 139 ms in that run). Not with fp64.
-    compile: bool = False
+    # (118 -> 139 ms in that run). "auto": a short probe here decides (evaluate.py `rollout_model`; the run's
+    # tag `<split>/rollout_compile` says what it chose). Not with fp64. (The rollout's precision has no "auto":
+    # it changes the errors a report shows, so a tier fixes it.)
+    compile: bool | Literal["auto"] = False
 
     def validate(self) -> None:
+        _require(self.compile in (True, False, "auto"), "eval.compile", "must be true, false or \"auto\"")
         _require(not (self.compile and self.precision == "fp64"), "eval.compile",
                  "must be false with eval.precision = fp64 (the fp64 reference runs eagerly)")
         _require(self.max_trajectories is None or self.max_trajectories >= 1, "eval.max_trajectories",

@@ -163,7 +163,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
-    rolled_out_by = compiled_for_inference(simulator) if config.compile else simulator
+    rolled_out_by, compile_choice = rollout_model(simulator, trajectories, config, device)
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
         monitors = (arm(health_monitors(simulator, traj, config.rollout_steps, bounds), config.stop_on)
                     if config.monitors else [])
@@ -209,11 +209,42 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             summary[key] = float(np.mean([row[key] for row in per_traj if key in row]))
     summary["num_trajectories"] = float(len(per_traj))
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
+    if compile_choice:  # eval.compile = "auto": what the probe chose, and its timings
+        tags["rollout_compile"] = compile_choice
     if stops:  # the report shows where monitors stopped rollouts
         tags["rollouts_stopped"] = "; ".join(stops)[:5000]
     if flagged:  # and where they flagged the ones that ran on
         tags["rollouts_flagged"] = "; ".join(flagged)[:5000]
     return Evaluation(summary, results, per_traj, tags)
+
+
+def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
+                  device: torch.device | str = "cpu") -> tuple[LearnedSimulator, str]:
+    """What the rollouts run: the simulator, or its compiled, frozen copy (`eval.compile`). For "auto", a
+    short probe on the first trajectory's first step here decides whether compiling pays over all the
+    rollouts' steps (`autotune.choose_rollout_compile`); the second value describes that choice ("" when
+    nothing was auto)."""
+    if config.compile is True:
+        return compiled_for_inference(simulator), ""
+    if config.compile is False or not trajectories or getattr(simulator, "architecture", "gns") != "gns":
+        return simulator, ("" if config.compile is False else "eager (nothing to compile)")
+    from gns_bench.train import autotune
+
+    first, w = trajectories[0], simulator.input_sequence_length
+    window = torch.from_numpy(first.position[:w]).transpose(0, 1).contiguous().to(device)
+    types = torch.from_numpy(first.particle_type).to(device)
+    context = (torch.from_numpy(first.step_context[w - 1: w]).to(device) if first.step_context is not None
+               else None)
+    steps = sum(t.num_steps - w if config.rollout_steps is None else min(config.rollout_steps, t.num_steps - w)
+                for t in trajectories)
+
+    @torch.no_grad()
+    def step(model: LearnedSimulator) -> None:
+        model.predict_next_position(window, types, None, context, precision=config.precision)
+
+    choice = autotune.choose_rollout_compile(simulator, step, config.precision, first.num_particles,
+                                             torch.device(device), steps)
+    return (compiled_for_inference(simulator) if choice.compile else simulator), choice.describe()
 
 
 def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None,

@@ -95,20 +95,51 @@ def choose(config: TrainConfig, simulator: Simulator, step_fn: Callable[[Learned
         model = copy.deepcopy(simulator)
         if compiled:
             model.network.compile(dynamic=True)
-        started = time.perf_counter()
-        for _ in range(WARM_UP_STEPS):
-            step_fn(model, precision)
-        warm_up = time.perf_counter() - started
-        started = time.perf_counter()
-        for _ in range(TIMED_STEPS):
-            step_fn(model, precision)
-        seconds = (time.perf_counter() - started) / TIMED_STEPS
-        timings[label(precision, compiled)] = seconds
+        timings[label(precision, compiled)], warm_up = _time(lambda model=model, p=precision: step_fn(model, p))
         if compiled:
-            compile_seconds = max(compile_seconds, warm_up - WARM_UP_STEPS * seconds)
+            compile_seconds = max(compile_seconds, warm_up)
         del model
     best = pick(timings, compile_seconds, steps_left)
     choice = SpeedSettings(best[0], best[1], "probed", timings, compile_seconds)
+    cache[key] = {k: v for k, v in asdict(choice).items() if k != "source"}
+    _write_cache(cache)
+    return choice
+
+
+def _time(step: Callable[[], None]) -> tuple[float, float]:
+    """(seconds a step after warm-up, seconds the warm-up took beyond that many steps: compiling)."""
+    started = time.perf_counter()
+    for _ in range(WARM_UP_STEPS):
+        step()
+    warm_up = time.perf_counter() - started
+    started = time.perf_counter()
+    for _ in range(TIMED_STEPS):
+        step()
+    seconds = (time.perf_counter() - started) / TIMED_STEPS
+    return seconds, max(warm_up - WARM_UP_STEPS * seconds, 0.0)
+
+
+def choose_rollout_compile(simulator: Simulator, rollout_step: Callable[[Simulator], None], precision: str,
+                           nodes: int, device: torch.device, steps: int, *, use_cache: bool = True
+                           ) -> SpeedSettings:
+    """`eval.compile = "auto"`: whether rollouts run faster through a compiled, frozen copy of the network
+    (`compiled_for_inference`) over their `steps` steps here, its compiling counted. `rollout_step(model)`
+    runs one rollout step of `model`. Cached like training's choice. (The rollout's precision is never
+    "auto": it changes the errors a report shows, so a tier fixes it.)"""
+    from gns_bench.model.precision import compiled_for_inference
+
+    parameters = sum(p.numel() for p in simulator.parameters())
+    key = (f"{machine_key(device)} | rollout {getattr(simulator, 'architecture', 'gns')} {parameters} parameters "
+           f"D{simulator.dim} | ~{2 ** round(math.log2(max(nodes, 1)))} nodes | {precision}")
+    cache = _read_cache()
+    if use_cache and key in cache:
+        return SpeedSettings(**{**cache[key], "source": "cached"})
+    eager, _ = _time(lambda: rollout_step(simulator))
+    compiled_model = compiled_for_inference(simulator)
+    compiled, compile_seconds = _time(lambda: rollout_step(compiled_model))
+    timings = {label(precision, False): eager, label(precision, True): compiled}
+    chosen = pick(timings, compile_seconds, steps)
+    choice = SpeedSettings(chosen[0], chosen[1], "probed", timings, compile_seconds)
     cache[key] = {k: v for k, v in asdict(choice).items() if k != "source"}
     _write_cache(cache)
     return choice

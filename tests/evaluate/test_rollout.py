@@ -120,6 +120,23 @@ def test_a_compiled_rollout_equals_the_eager_one_and_leaves_the_model_alone(untr
         EvalConfig(compile=True, precision="fp64").validate()
 
 
+def test_rollout_compile_auto_probes_once_then_uses_the_cache(untrained: LearnedSimulator, tiny_dataset: Path,
+                                                              tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gns_bench.config import EvalConfig, load_config
+    from gns_bench.evaluate.evaluate import evaluate
+
+    monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path))
+    assert load_config(None, ["eval.compile=auto"]).eval.compile == "auto"
+    trajectories = load_split(tiny_dataset, "test")[:1]
+    config = EvalConfig(distribution_steps=0, monitors=False, rollout_steps=10, one_step_windows=2, compile="auto")
+    first = evaluate(untrained, trajectories, config, progress=False)
+    choice = first.tags["rollout_compile"]  # e.g. "fp32 (probed: fp32 0.004 s, fp32+compile 0.002 s a step)"
+    assert "(probed: fp32 " in choice and "fp32+compile " in choice
+    again = evaluate(untrained, trajectories, config, progress=False)
+    assert again.tags["rollout_compile"].split(" (")[0] == choice.split(" (")[0]
+    assert "(cached: " in again.tags["rollout_compile"]
+
+
 def test_static_edge_reuse_changes_nothing(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
     traj = load_split(tiny_dataset, "test")[0]
     assert (traj.position == traj.position[:1]).all(axis=(0, 2)).sum() == 11  # the static floor row
