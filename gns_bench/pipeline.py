@@ -6,7 +6,7 @@ import csv
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ from gns_bench.config import (
     Config,
     ConfigError,
     EvalConfig,
+    StressConfig,
     apply_overrides,
     config_from_dict,
     resolve_for_dataset,
@@ -264,6 +265,33 @@ def stress_run(checkpoint: str | Path, dataset_dir: str | Path, stress_overrides
     with tracking.start_run(experiment, f"stress-{Path(dataset_dir).name}", params=params, tags=tags) as run:
         metrics = _stress_and_log(run, simulator, config, dataset_dir, out_dir, torch_device, progress)
         return RunSummary(run.run_id, out_dir, None, metrics)
+
+
+def stress_trained(source: tracking.RunRecord, stress: StressConfig, dataset_dir: str | Path, out_dir: str | Path,
+                   *, experiment: str, run_name: str, extra_params: dict[str, Any] | None = None,
+                   extra_tags: dict[str, Any] | None = None, device: str = "auto", progress: bool = True
+                   ) -> RunSummary:
+    """The stress tests `stress` of the model that MLflow run `source` trained on `dataset_dir`, as a new run:
+    `source`'s params, metrics and tags (tag `shared_from` = its run id, where its rollouts stay) with the
+    stress results logged as a trained run's are. Its checkpoint comes from `out_dir` when an earlier attempt
+    fetched it, else from `source`'s artifacts. The run ends FINISHED only once every test is logged."""
+    out_dir = Path(out_dir)
+    checkpoint = out_dir / CHECKPOINT_NAME
+    if not checkpoint.exists():
+        fetched = tracking.download_artifacts(source.run_id, f"checkpoint/{CHECKPOINT_NAME}", out_dir / "fetch")
+        if fetched is None:
+            raise FileNotFoundError(f"run {source.run_id} ({source.name}) logged no checkpoint to stress-test")
+        fetched.replace(checkpoint)
+    torch_device = str(resolve_device(device))
+    simulator, config, _ = load_simulator(checkpoint, torch_device)
+    config = config_from_dict({**config.to_dict(), "stress": asdict(stress)}, f"{checkpoint} + [stress]")
+    params = {**source.params, **tracking.as_param_strings(config.flat()), **(extra_params or {})}
+    tags = {**{k: v for k, v in source.tags.items() if not k.startswith("mlflow.")}, **(extra_tags or {}),
+            "shared_from": source.run_id, "stress_tested": "here"}  # report/collect.py `stress_run_id`
+    with tracking.start_run(experiment, run_name, params=params, tags=tags) as run:
+        run.log_metrics(source.metrics)
+        metrics = _stress_and_log(run, simulator, config, dataset_dir, out_dir, torch_device, progress)
+        return RunSummary(run.run_id, out_dir, checkpoint, {**source.metrics, **metrics})
 
 
 @dataclass

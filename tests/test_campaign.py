@@ -70,7 +70,7 @@ def test_a_campaign_naming_a_missing_sweep_fails_before_running(sweeps: Path) ->
 def test_the_paper_campaign_lists_every_domain_then_the_ablations() -> None:
     campaign = load_campaign(SWEEPS_DIR / "campaigns" / "paper.toml")
     folders = [p.parent.name for p in campaign.sweeps]
-    assert folders == ["domains"] * 16 + ["ablations"] * 12 + ["baselines"] * 7
+    assert folders == ["domains"] * 16 + ["ablations"] * 12 + ["baselines"] * 7 + ["stress"] * 5
     assert [p.stem for p in campaign.sweeps[16:22]] == ["message_passing_steps", "connectivity_radius", "noise_std",
                                                          "processor_sharing", "position_encoding", "noise_correction"]
 

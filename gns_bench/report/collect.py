@@ -50,6 +50,12 @@ class RunRow:
         return self.tag("shared_from") or self.run_id
 
     @property
+    def stress_run_id(self) -> str:
+        """Where the run's stress results are: its own, when a stress sweep tested another sweep's model
+        (tag `stress_tested` = "here", `pipeline.stress_trained`), else where its artifacts are."""
+        return self.run_id if self.tag("stress_tested") == "here" else self.artifact_run_id
+
+    @property
     def split(self) -> str:
         return self.record.params.get("eval.split", "test") if self.record else "test"
 

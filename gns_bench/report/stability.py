@@ -42,7 +42,7 @@ def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
     """The stress tests a run logged, from its `stress/<test>.json` artifacts."""
     results = []
     for name in filter(None, row.tag("stress/tests").split(",")):
-        local = tracking.download_artifacts(row.artifact_run_id, f"stress/{name}.json", workdir)
+        local = tracking.download_artifacts(row.stress_run_id, f"stress/{name}.json", workdir)
         if local is None:
             continue
         data = json.loads(local.read_text())
@@ -116,7 +116,7 @@ def trips(row: RunRow) -> list[str]:
 
 
 def _per_trajectory(row: RunRow, variant: str, workdir: Path) -> list[dict[str, float]]:
-    local = tracking.download_artifacts(row.artifact_run_id, f"generalisation/{variant}/{variant}_per_trajectory.csv",
+    local = tracking.download_artifacts(row.stress_run_id, f"generalisation/{variant}/{variant}_per_trajectory.csv",
                                         workdir)
     if local is None:
         return []
@@ -229,7 +229,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
                                     _held_out(sweep.domain))
             lines += [f"![error against the context]({figure.name})", ""]
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
-        loaded = load_rollouts(row.artifact_run_id, npz, workdir)
+        loaded = load_rollouts(row.stress_run_id, npz, workdir)
         results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
         picture, rigidity = before.get("picture", False), before.get("rigidity", False)
         if results:

@@ -4,13 +4,16 @@ A run is identified by its key: a hash of its resolved config, its domain and it
 hash. A run whose key has a FINISHED MLflow run in the sweep's experiment is skipped; deleting that
 MLflow run makes it run again. A run whose key another sweep already trained (every ablation's default
 point is the domain sweep's run) is shared, not retrained: the sweep's experiment gets a copy of that run's
-params and metrics, tagged `shared_from` with its run id (where its artifacts stay). A run that fails is
+params and metrics, tagged `shared_from` with its run id (where its artifacts stay). A stress sweep's run
+whose model another sweep trained (the same config but for [stress]) stress-tests that run's checkpoint
+instead of training it again. A run that fails is
 recorded FAILED with its error and the sweep goes on; Ctrl-C marks the run in flight KILLED and stops the
 sweep, and the next invocation resumes it from its checkpoint.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import hashlib
 import json
@@ -20,10 +23,10 @@ from functools import partial
 from pathlib import Path
 
 from gns_bench import tracking
-from gns_bench.config import Config, resolve_for_dataset
+from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
 from gns_bench.datasets import dataset_path, ensure_dataset
-from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, train_run
+from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 
 
@@ -171,6 +174,10 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
         record = records.get(key)
         if record is None:
             continue
+        if "shared_from" in record.tags and "stress/tests" in record.tags:
+            echo(f"  {run.name}: stress tests of {record.tags.get('shared_from_run', '?')}'s model, left as they "
+                 f"were (delete run {record.run_id} to test again)")
+            continue
         if "shared_from" in record.tags:
             source = trained_keys(run.domain).get(key)
             if source is None:
@@ -193,6 +200,25 @@ def share_run(run: PlannedRun, key: str, source: tracking.RunRecord) -> RunOutco
                                tags={**_sweep_tags(run, key), "shared_from_run": f"{source.tags.get('sweep', '?')}"
                                                                                  f"/{source.name}"})
     return RunOutcome(run.name, "SHARED", run_id, metrics=source.metrics)
+
+
+def stress_trained_run(run: PlannedRun, key: str, source: tracking.RunRecord, data_root: Path, runs_root: Path,
+                       progress: bool = True) -> RunOutcome:
+    """`run`'s stress tests on the checkpoint of `source`, which another sweep trained with `run`'s config but
+    for its [stress] section: a run of its own holding `source`'s metrics and the stress results
+    (`pipeline.stress_trained`). A failure is recorded FAILED, and the sweep goes on."""
+    out_dir = run_dir(runs_root, run)
+    try:
+        summary = stress_trained(
+            source, run.config.stress, training_data(run, data_root), out_dir, experiment=f"sweep:{run.sweep}",
+            run_name=run.name, extra_params=_sweep_params(run),
+            extra_tags={**_sweep_tags(run, key), "shared_from_run": f"{source.tags.get('sweep', '?')}/{source.name}"},
+            progress=progress)
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001 - recorded FAILED in MLflow; the sweep goes on
+        return RunOutcome(run.name, "FAILED", error=f"{type(exc).__name__}: {exc}")
+    return RunOutcome(run.name, "FINISHED", summary.run_id, metrics=summary.metrics)
 
 
 def select_runs(sweep: SweepSpec, runs: list[PlannedRun], only: Sequence[str]) -> list[PlannedRun]:
@@ -230,15 +256,32 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             status[run.name] = "dataset missing"
             continue
         key = dataset_run_key(run, data_root)
+        unstressed = _unstressed_key(run, data_root)
         if key in done:
             status[run.name] = "finished"
         elif key in trained:
             source = trained[key]
             status[run.name] = f"shared with {source.tags.get('sweep', '?')}/{source.name}"
             shared[run.name] = (key, source)
+        elif unstressed in trained:  # another sweep trained this model: stress-test its checkpoint
+            source = trained[unstressed]
+            status[run.name] = f"{STRESSED} {source.tags.get('sweep', '?')}/{source.name}"
+            shared[run.name] = (key, source)
         else:
             status[run.name] = "to run"
     return runs, status, shared
+
+
+STRESSED = "stress tests of"  # the status of a stress run whose model another sweep trained
+
+
+def _unstressed_key(run: PlannedRun, data_root: Path) -> str | None:
+    """The key of the run that trains `run`'s model without stress-testing it (None: `run` runs no stress
+    test), so that a stress sweep tests a domain sweep's checkpoint instead of training the model again."""
+    if not run.config.stress.enabled:
+        return None
+    return dataset_run_key(dataclasses.replace(run, config=dataclasses.replace(run.config, stress=StressConfig())),
+                           data_root)
 
 
 def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str],
@@ -288,7 +331,11 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     if not train:
         pending = []
     for run in runs:
-        if run.name in shared:
+        if run.name in shared and status[run.name].startswith(STRESSED):
+            key, source = shared[run.name]
+            echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), its checkpoint stress-tested")
+            outcomes.append(stress_trained_run(run, key, source, data_root, runs_root, progress))
+        elif run.name in shared:
             key, source = shared[run.name]
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), recorded without training")
             outcomes.append(share_run(run, key, source))

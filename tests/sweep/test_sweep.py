@@ -570,3 +570,57 @@ def test_the_default_point_takes_the_tiers_default_seeds(sweeps: Path) -> None:
     path.write_text(default.replace("= 2", "= 7") + GRID)
     with pytest.raises(SweepError, match="not among the axis values"):
         load_sweep(path)
+
+
+def test_a_stress_sweep_tests_the_model_a_domain_sweep_trained_instead_of_training_it(tmp_path: Path) -> None:
+    root = tmp_path / "sweeps"
+    for folder in ("domains", "stress"):
+        (root / folder).mkdir(parents=True)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", root / "tiers.toml")
+    model = "[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 8\n"
+    (root / "domains" / "tiny.toml").write_text(f'description = "the model"\ndomain = "tiny"\n\n{model}')
+    (root / "stress" / "tiny.toml").write_text(
+        f'description = "its stress tests"\ndomain = "tiny"\n\n[config.stress]\ntests = ["precision"]\n'
+        f'precisions = ["fp32", "bf16"]\nmax_trajectories = 1\nrollout_steps = 8\n\n{model}')
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
+    domain, stress = load_sweep(root / "domains" / "tiny.toml", root), load_sweep(root / "stress" / "tiny.toml", root)
+    [trained] = run_sweep(domain, "smoke", **roots)
+    runs, status, _ = prepare(stress, "smoke", tmp_path / "data", progress=False)
+    assert status[runs[0].name] == f"stress tests of domain-tiny/{runs[0].name}"
+    [tested] = run_sweep(stress, "smoke", **roots)
+    assert trained.status == tested.status == "FINISHED"
+    record = tracking.get_run(tested.run_id)
+    assert record.tags["shared_from"] == trained.run_id and record.tags["stress/tests"] == "precision"
+    assert record.metrics["test/rollout_mse"] == trained.metrics["rollout_mse"]  # the same model's evaluation
+    assert any(k.startswith("stress/precision/") for k in record.metrics)
+    assert not any(k.startswith("stress/") for k in tracking.get_run(trained.run_id).metrics)
+    checkpoint = tmp_path / "runs" / "stress-tiny" / "smoke" / runs[0].name / "checkpoint.pt"
+    source = tmp_path / "runs" / "domain-tiny" / "smoke" / runs[0].name / "checkpoint.pt"
+    assert checkpoint.read_bytes() == source.read_bytes()  # tested, not trained again
+    assert [o.status for o in run_sweep(stress, "smoke", **roots)] == ["SKIPPED"]
+    from gns_bench.report import write_report
+
+    report = write_report(root / "stress" / "tiny.toml", "smoke", tmp_path / "reports").read_text()
+    assert tested.run_id in report and "# precision" in report  # the stress results the tested copy holds
+    assert "rollout_mse_bf16" in report
+
+
+def test_the_cpu_stress_sweeps_test_their_domain_sweeps_models() -> None:
+    """At the campaign's tier a stress sweep's runs must train exactly what its domain sweep trains (all but
+    [stress]), so that the runner tests that checkpoint instead of training another model: a per-domain
+    budget set in one file and not the other would break this."""
+    from dataclasses import replace as replace_config
+
+    from gns_bench.config import StressConfig
+
+    domains = {load_sweep(p).domain: load_sweep(p) for p in discover_sweeps() if load_sweep(p).kind == "domain"}
+    checked = 0
+    for sweep in (load_sweep(p) for p in discover_sweeps()):
+        if sweep.kind != "stress" or sweep.domain not in domains:
+            continue
+        [tested] = sweep.plan("cpu")
+        trained = {r.seed: r for r in domains[sweep.domain].plan("cpu")}[tested.seed]
+        assert tested.config.stress.enabled, sweep.name
+        assert replace_config(tested.config, stress=StressConfig()) == trained.config, sweep.name
+        checked += 1
+    assert checked == 4  # WATERRAMPS, CONTINUOUS, MULTIMATERIAL, BOXBATH (the shaken box trains its own)
