@@ -170,16 +170,27 @@ def inference_claim(reports_root: Path) -> list[str]:
 
 
 def bench_claims(reports_root: Path) -> list[str]:
-    """gns-bench's own speed targets, from the committed benchmark (`gns-bench bench`)."""
-    path = reports_root / "bench" / "bench.json"
-    if not path.is_file():
-        return ["| Speed targets (`gns-bench bench`) | — | no benchmark yet | — | — | — |"]
+    """gns-bench's own speed targets, from the committed benchmarks (`gns-bench bench`, one folder per machine):
+    one row per target, each machine's measurement in it."""
     from gns_bench.bench.report import targets
 
-    results = json.loads(path.read_text())
-    hardware = results.get("environment", {}).get("hardware", "?")
-    return [f"| {t['target']} (gns-bench's own target) | bench | {t['measured']} ({hardware}) | — | "
-            f"{'met' if t['met'] else 'not met'} | [bench](bench/README.md) |" for t in targets(results)]
+    by_target: dict[str, list[tuple[str, str, bool, str]]] = {}
+    for path in sorted((reports_root / "bench").glob("*/bench.json")):
+        results = json.loads(path.read_text())
+        hardware = results.get("environment", {}).get("hardware", "?")
+        for t in targets(results):
+            by_target.setdefault(t["target"], []).append((hardware, t["measured"], t["met"], path.parent.name))
+    if not by_target:
+        return ["| Speed targets (`gns-bench bench`) | — | no benchmark yet | — | — | — |"]
+    rows = []
+    for target, measured in by_target.items():
+        ours = "; ".join(f"{hardware}: {value}" for hardware, value, _, _ in measured)
+        met = sum(ok for _, _, ok, _ in measured)
+        verdict = ("met" if met == len(measured) else "not met" if not met else
+                   f"met on {met} of {len(measured)} machines")
+        links = ", ".join(f"[{folder}](bench/{folder}/README.md)" for _, _, _, folder in measured)
+        rows.append(f"| {target} (gns-bench's own target) | bench | {ours} | — | {verdict} | {links} |")
+    return rows
 
 
 def write_index(reports_root: Path = Path("reports"), out: Path | None = None) -> Path:
