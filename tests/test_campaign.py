@@ -80,8 +80,11 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
     from gns_bench.sweep import timing
 
     (sweeps / "ablations" / "same.toml").write_text(SWEEP.format(name="the point of 'one'", steps=1))
+    (sweeps / "stress").mkdir()
+    (sweeps / "stress" / "one.toml").write_text(SWEEP.format(name="tests of 'one'", steps=1)
+                                                + '\n[config.stress]\ntests = ["precision"]\n')
     path = sweeps / "campaigns" / "c.toml"
-    path.write_text('sweeps = ["domains/one.toml", "domains/two.toml", "ablations/same.toml"]\n')
+    path.write_text('sweeps = ["domains/one.toml", "domains/two.toml", "ablations/same.toml", "stress/one.toml"]\n')
     campaign = load_campaign(path, sweeps)
     measured = []
 
@@ -92,13 +95,14 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
     monkeypatch.setattr(timing, "measure_step_rate", fake_rate)
     lines: list[str] = []
     plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
-    assert measured == [] and lines[-1].endswith("to train: 0 runs, 0 s at the rates measured here (and 3 runs "
+    assert measured == [] and lines[-1].endswith("to train: 0 runs, 0 s at the rates measured here (and 4 runs "
                                                   "whose dataset is not generated yet, not timed)")
     ensure_dataset("tiny", "smoke", 0, tmp_path / "data", progress=False)
     lines.clear()
     plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
-    assert measured == [1, 2]  # 'same' costs what 'one' costs: measured once
+    assert measured == [1, 2]  # 'same' and the stress sweep's model cost what 'one' costs: measured once
     first_row = "\n".join(lines).splitlines()[3]  # 'one': timing, title, header, its run
     assert "4 (fp32)" in first_row and first_row.endswith("5 s"), first_row  # 20 smoke steps at 4 steps/s
-    # 20 steps at 4/s and at 8/s; 'same' is the run 'one' trains (the same key), so counted once
+    # 20 steps at 4/s and at 8/s; 'same' is the run 'one' trains (the same key), so counted once, and the
+    # stress sweep tests that run's model: no training of its own
     assert lines[-1] == "campaign c (smoke): to train: 2 runs, 8 s at the rates measured here"

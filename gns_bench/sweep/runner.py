@@ -256,7 +256,7 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             status[run.name] = "dataset missing"
             continue
         key = dataset_run_key(run, data_root)
-        unstressed = _unstressed_key(run, data_root)
+        unstressed = unstressed_key(run, data_root)
         if key in done:
             status[run.name] = "finished"
         elif key in trained:
@@ -275,7 +275,7 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
 STRESSED = "stress tests of"  # the status of a stress run whose model another sweep trained
 
 
-def _unstressed_key(run: PlannedRun, data_root: Path) -> str | None:
+def unstressed_key(run: PlannedRun, data_root: Path) -> str | None:
     """The key of the run that trains `run`'s model without stress-testing it (None: `run` runs no stress
     test), so that a stress sweep tests a domain sweep's checkpoint instead of training the model again."""
     if not run.config.stress.enabled:

@@ -13,7 +13,7 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from gns_bench.sweep.runner import dataset_run_key, format_plan, prepare, training_data
+from gns_bench.sweep.runner import dataset_run_key, format_plan, prepare, training_data, unstressed_key
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 from gns_bench.train.rate import StepRate, measure_step_rate
 
@@ -28,6 +28,7 @@ def cost_key(run: PlannedRun, data_root: Path) -> str:
     config = run.config.to_dict()
     config["train"] = {k: v for k, v in config["train"].items() if k not in _COST_FREE}
     config.pop("eval", None)
+    config.pop("stress", None)
     return json.dumps({"data": str(training_data(run, data_root)), "config": config}, sort_keys=True, default=str)
 
 
@@ -76,7 +77,7 @@ def time_to_run(runs: list[PlannedRun], status: dict[str, str], rates: dict[str,
                 counted: set[str]) -> tuple[float, int, int]:
     """Training seconds of the runs still to run, (seconds, runs counted, runs whose dataset is missing).
     `counted`: run keys already counted (a campaign's sweeps share points: an ablation's default is the
-    domain's run), updated here."""
+    domain's run, a stress sweep tests the domain's model), updated here. Stress rollouts are not counted."""
     seconds, runs_counted, missing = 0.0, 0, 0
     for run in runs:
         if status.get(run.name) == "dataset missing":
@@ -84,8 +85,8 @@ def time_to_run(runs: list[PlannedRun], status: dict[str, str], rates: dict[str,
             continue
         if status.get(run.name) != "to run":
             continue
-        key = dataset_run_key(run, data_root)
-        if key in counted:
+        key, model = dataset_run_key(run, data_root), unstressed_key(run, data_root)
+        if key in counted or model in counted:  # a stress sweep's model is its domain sweep's run: not trained
             continue
         counted.add(key)
         seconds += rates[run.name].seconds_for(run.config.train.steps)
