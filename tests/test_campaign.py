@@ -79,6 +79,7 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     from gns_bench.sweep import timing
 
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")  # nothing trained yet
     (sweeps / "ablations" / "same.toml").write_text(SWEEP.format(name="the point of 'one'", steps=1))
     (sweeps / "stress").mkdir()
     (sweeps / "stress" / "one.toml").write_text(SWEEP.format(name="tests of 'one'", steps=1)

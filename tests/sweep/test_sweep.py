@@ -572,7 +572,9 @@ def test_the_default_point_takes_the_tiers_default_seeds(sweeps: Path) -> None:
         load_sweep(path)
 
 
-def test_a_stress_sweep_tests_the_model_a_domain_sweep_trained_instead_of_training_it(tmp_path: Path) -> None:
+def test_a_stress_sweep_tests_the_model_a_domain_sweep_trained_instead_of_training_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")  # its runs shared with no test
     root = tmp_path / "sweeps"
     for folder in ("domains", "stress"):
         (root / folder).mkdir(parents=True)
