@@ -242,9 +242,11 @@ def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], c
     def step(model: LearnedSimulator) -> None:
         model.predict_next_position(window, types, None, context, precision=config.precision)
 
-    choice = autotune.choose_rollout_compile(simulator, step, config.precision, first.num_particles,
-                                             torch.device(device), steps)
-    return (compiled_for_inference(simulator) if choice.compile else simulator), choice.describe()
+    choice, compiled = autotune.choose_rollout_compile(simulator, step, config.precision, first.num_particles,
+                                                       torch.device(device), steps)
+    if not choice.compile:
+        return simulator, choice.describe()
+    return (compiled if compiled is not None else compiled_for_inference(simulator)), choice.describe()
 
 
 def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None,

@@ -121,11 +121,12 @@ def _time(step: Callable[[], None]) -> tuple[float, float]:
 
 def choose_rollout_compile(simulator: Simulator, rollout_step: Callable[[Simulator], None], precision: str,
                            nodes: int, device: torch.device, steps: int, *, use_cache: bool = True
-                           ) -> SpeedSettings:
+                           ) -> tuple[SpeedSettings, Simulator | None]:
     """`eval.compile = "auto"`: whether rollouts run faster through a compiled, frozen copy of the network
     (`compiled_for_inference`) over their `steps` steps here, its compiling counted. `rollout_step(model)`
-    runs one rollout step of `model`. Cached like training's choice. (The rollout's precision is never
-    "auto": it changes the errors a report shows, so a tier fixes it.)"""
+    runs one rollout step of `model`. Cached like training's choice. Returns the choice and, when a probe
+    compiled it, that copy (not compiled twice). (The rollout's precision is never "auto": it changes the
+    errors a report shows, so a tier fixes it.)"""
     from gns_bench.model.precision import compiled_for_inference
 
     parameters = sum(p.numel() for p in simulator.parameters())
@@ -133,7 +134,7 @@ def choose_rollout_compile(simulator: Simulator, rollout_step: Callable[[Simulat
            f"D{simulator.dim} | ~{2 ** round(math.log2(max(nodes, 1)))} nodes | {precision}")
     cache = _read_cache()
     if use_cache and key in cache:
-        return SpeedSettings(**{**cache[key], "source": "cached"})
+        return SpeedSettings(**{**cache[key], "source": "cached"}), None
     eager, _ = _time(lambda: rollout_step(simulator))
     compiled_model = compiled_for_inference(simulator)
     compiled, compile_seconds = _time(lambda: rollout_step(compiled_model))
@@ -142,7 +143,7 @@ def choose_rollout_compile(simulator: Simulator, rollout_step: Callable[[Simulat
     choice = SpeedSettings(chosen[0], chosen[1], "probed", timings, compile_seconds)
     cache[key] = {k: v for k, v in asdict(choice).items() if k != "source"}
     _write_cache(cache)
-    return choice
+    return choice, compiled_model
 
 
 def pick(timings: dict[str, float], compile_seconds: float, steps_left: int) -> tuple[str, bool]:
