@@ -152,8 +152,7 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
              f"{env['threads']} threads). Synthetic particle clouds at the paper's density (~15 neighbours "
              "within R); the paper's model (M = 10, latent 128, MLPs 2 x 128).", "",
              "## Targets", ""]
-    lines += _table([{**r, "met": "yes" if r["met"] else "**no**"} for r in targets(results)],
-                    [("target", "target", ""), ("measured", "measured", ""), ("met", "met", "")])
+    lines += targets_table(results)
     lines += ["", why_missed(results)]
     lines += ["", "## Training step (forward + backward + Adam, one graph)", ""]
     lines += _table([{**r, "variant": _variant(r)} for r in results["train"]],
@@ -214,27 +213,33 @@ def _plot(results: dict[str, Any], path: Path) -> Path:
     return path
 
 
+def targets_table(results: dict[str, Any]) -> list[str]:
+    """The markdown table of a benchmark's targets, measured and met."""
+    return _table([{**r, "met": "yes" if r["met"] else "**no**"} for r in targets(results)],
+                  [("target", "target", ""), ("measured", "measured", ""), ("met", "met", "")])
+
+
+def machine_benchmarks(root: Path) -> list[tuple[str, dict[str, Any]]]:
+    """(folder name, bench.json) of every machine benchmarked under `root`, one folder each."""
+    import json
+
+    return [(path.parent.name, json.loads(path.read_text())) for path in sorted(root.glob("*/bench.json"))]
+
+
 def write_bench_index(root: Path) -> Path:
     """`root/README.md`: the targets of every machine benchmarked under `root` (each folder's bench.json),
     side by side, each linking to its full tables. Machines differ in what is fastest (issue #22), so each
     keeps its own numbers."""
-    import json
-
     lines = ["# gns-bench benchmark, by machine", "",
              "Each folder holds one `gns-bench bench` run on one kind of machine (tables, plots, `bench.json`); "
              "the targets it was held to are repeated here. Ratios compare numbers measured in the same run.", ""]
-    found = 0
-    for folder in sorted(p.parent for p in root.glob("*/bench.json")):
-        results = json.loads((folder / "bench.json").read_text())
+    found = machine_benchmarks(root)
+    for folder, results in found:
         env = results["environment"]
         quick = " (quick sizes)" if results.get("settings", {}).get("repeats", 5) < 5 else ""
         lines += [f"## {env['hardware']}{quick}", "",
-                  f"[{folder.name}/]({folder.name}/README.md): device `{env['device']}`, torch {env['torch']}, "
-                  f"{env['threads']} threads.", ""]
-        lines += _table([{**r, "met": "yes" if r["met"] else "**no**"} for r in targets(results)],
-                        [("target", "target", ""), ("measured", "measured", ""), ("met", "met", "")])
-        lines.append("")
-        found += 1
+                  f"[{folder}/]({folder}/README.md): device `{env['device']}`, torch {env['torch']}, "
+                  f"{env['threads']} threads.", "", *targets_table(results), ""]
     if not found:
         lines.append(f"No benchmark yet: run `gns-bench bench` (it writes {root}/<machine>/).")
     path = root / "README.md"

@@ -9,7 +9,6 @@ from the numbers, each linking to the report that holds the detail.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -172,14 +171,13 @@ def inference_claim(reports_root: Path) -> list[str]:
 def bench_claims(reports_root: Path) -> list[str]:
     """gns-bench's own speed targets, from the committed benchmarks (`gns-bench bench`, one folder per machine):
     one row per target, each machine's measurement in it."""
-    from gns_bench.bench.report import targets
+    from gns_bench.bench.report import machine_benchmarks, targets
 
     by_target: dict[str, list[tuple[str, str, bool, str]]] = {}
-    for path in sorted((reports_root / "bench").glob("*/bench.json")):
-        results = json.loads(path.read_text())
+    for folder, results in machine_benchmarks(reports_root / "bench"):
         hardware = results.get("environment", {}).get("hardware", "?")
         for t in targets(results):
-            by_target.setdefault(t["target"], []).append((hardware, t["measured"], t["met"], path.parent.name))
+            by_target.setdefault(t["target"], []).append((hardware, t["measured"], t["met"], folder))
     if not by_target:
         return ["| Speed targets (`gns-bench bench`) | — | no benchmark yet | — | — | — |"]
     rows = []

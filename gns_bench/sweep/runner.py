@@ -174,7 +174,7 @@ def reevaluate(sweep: SweepSpec, runs: list[PlannedRun], data_root: Path, runs_r
         record = records.get(key)
         if record is None:
             continue
-        if "shared_from" in record.tags and "stress/tests" in record.tags:
+        if record.tags.get("stress_tested") == "here":  # pipeline.stress_trained's run
             echo(f"  {run.name}: stress tests of {record.tags.get('shared_from_run', '?')}'s model, left as they "
                  f"were (delete run {record.run_id} to test again)")
             continue
@@ -256,15 +256,14 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             status[run.name] = "dataset missing"
             continue
         key = dataset_run_key(run, data_root)
-        unstressed = unstressed_key(run, data_root)
         if key in done:
             status[run.name] = "finished"
         elif key in trained:
             source = trained[key]
             status[run.name] = f"shared with {source.tags.get('sweep', '?')}/{source.name}"
             shared[run.name] = (key, source)
-        elif unstressed in trained:  # another sweep trained this model: stress-test its checkpoint
-            source = trained[unstressed]
+        elif (unstressed := unstressed_key(run, data_root)) in trained:  # another sweep trained this model:
+            source = trained[unstressed]  # stress-test its checkpoint
             status[run.name] = f"{STRESSED} {source.tags.get('sweep', '?')}/{source.name}"
             shared[run.name] = (key, source)
         else:
