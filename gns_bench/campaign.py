@@ -60,19 +60,17 @@ class SweepResult:
 def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print, *,
                   timed: bool = False) -> None:
     """Print each sweep's runs and their status, generating nothing. `timed`: with each run's step rate
-    measured here and its training time, and the campaign's total still to train, a point two sweeps share
-    counted once (`sweep/timing.py`)."""
+    measured here, its training and evaluation time, and the campaign's total still to run, a point two sweeps
+    share counted once (`sweep/timing.py`)."""
     if timed:
-        from gns_bench.sweep.timing import timed_plan, total_line
-        from gns_bench.train.rate import StepRate
+        from gns_bench.sweep.timing import Total, timed_plan, total_line
 
-        measured: dict[str, StepRate] = {}
+        measured: dict[str, object] = {}
         counted: set[str] = set()
-        seconds, runs, missing = 0.0, 0, 0
+        total = Total()
         for path in campaign.sweeps:
-            more = timed_plan(load_sweep(path), tier, data_root, measured=measured, counted=counted, echo=echo)
-            seconds, runs, missing = seconds + more[0], runs + more[1], missing + more[2]
-        echo(f"campaign {campaign.name} ({tier}): " + total_line(seconds, runs, missing))
+            total.add(timed_plan(load_sweep(path), tier, data_root, measured=measured, counted=counted, echo=echo))
+        echo(f"campaign {campaign.name} ({tier}): " + total_line(total))
         return
     for path in campaign.sweeps:
         sweep = load_sweep(path)

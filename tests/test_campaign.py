@@ -9,6 +9,7 @@ import pytest
 
 from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
 from gns_bench.datasets import ensure_dataset
+from gns_bench.evaluate.cost import EvaluationCost
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError
 from gns_bench.train.rate import StepRate
 
@@ -93,17 +94,28 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
         measured.append(config.model.message_passing_steps)
         return StepRate(4.0 * config.model.message_passing_steps, "fp32", steps)  # M=1: 4 steps/s, M=2: 8
 
+    def fake_evaluation(run, data_root):
+        evaluated.append(run.config.model.message_passing_steps)
+        return EvaluationCost(rollout_seconds=3.0 * run.config.model.message_passing_steps, rollout_steps=10,
+                              one_step_seconds=0.5, distribution_seconds=0.5)  # M=1: 4 s, M=2: 7 s
+
+    evaluated: list[int] = []
     monkeypatch.setattr(timing, "measure_step_rate", fake_rate)
+    monkeypatch.setattr(timing, "measure_evaluation", fake_evaluation)
     lines: list[str] = []
     plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
-    assert measured == [] and lines[-1].endswith("to train: 0 runs, 0 s at the rates measured here (and 4 runs "
-                                                  "whose dataset is not generated yet, not timed)")
+    assert measured == [] and lines[-1].endswith("to run: 0 runs, 0 s of training and 0 s of evaluation at the "
+                                                  "rates measured here (and 4 runs whose dataset is not generated "
+                                                  "yet, not timed)")
     ensure_dataset("tiny", "smoke", 0, tmp_path / "data", progress=False)
     lines.clear()
     plan_campaign(campaign, "smoke", tmp_path / "data", lines.append, timed=True)
     assert measured == [1, 2]  # 'same' and the stress sweep's model cost what 'one' costs: measured once
-    first_row = "\n".join(lines).splitlines()[3]  # 'one': timing, title, header, its run
-    assert "4 (fp32)" in first_row and first_row.endswith("5 s"), first_row  # 20 smoke steps at 4 steps/s
+    assert evaluated == [1, 2]  # likewise their evaluations (the same eval config and evaluation data)
+    first_row = "\n".join(lines).splitlines()[4]  # 'one': two timings, title, header, its run
+    # steps/s, training time (20 smoke steps at 4/s), evaluation time and its rollout steps
+    assert first_row.split()[-9:] == ["4", "(fp32)", "5", "s", "4", "s", "(10", "rollout", "steps)"], first_row
     # 20 steps at 4/s and at 8/s; 'same' is the run 'one' trains (the same key), so counted once, and the
-    # stress sweep tests that run's model: no training of its own
-    assert lines[-1] == "campaign c (smoke): to train: 2 runs, 8 s at the rates measured here"
+    # stress sweep tests that run's model: no training of its own, and its stress rollouts are not counted
+    assert lines[-1] == ("campaign c (smoke): to run: 2 runs, 8 s of training and 11 s of evaluation at the rates "
+                         "measured here")

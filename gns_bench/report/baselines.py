@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -22,7 +23,14 @@ from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
 from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 from gns_bench.report import figures  # noqa: E402
-from gns_bench.report.cells import budget_statement, definitions_section, fmt, ratio, run_ids_cell  # noqa: E402
+from gns_bench.report.cells import (  # noqa: E402
+    budget_statement,
+    definitions_section,
+    fmt,
+    ratio,
+    relative_to_cv,
+    run_ids_cell,
+)
 from gns_bench.report.collect import (  # noqa: E402
     SUMMARY_FILE,
     RunRow,
@@ -35,8 +43,9 @@ from gns_bench.report.collect import (  # noqa: E402
 from gns_bench.report.reference import domain_reference  # noqa: E402
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 
-HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | GNS (paper) | CConv (paper) "
-          "| CConv / GNS (paper) | MLflow runs |")
+HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
+          "same steps: GNS / baseline | rollout steps covered: GNS / baseline | GNS better here? | GNS (paper) "
+          "| CConv (paper) | CConv / GNS (paper) | MLflow runs |")
 DPI = 80
 
 
@@ -49,23 +58,90 @@ def architecture_of(sweep: SweepSpec) -> str:
 
 
 def _best(rows: list[RunRow]) -> RunRow | None:
-    done = [r for r in rows if r.ok and math.isfinite(r.metric("rollout_mse"))]
-    return min(done, key=lambda r: r.metric("rollout_mse"), default=None)
+    """The baseline's best run, as the paper took CConv's best after its sweep (Sec. 5.5): the lowest rollout MSE
+    against constant velocity's over the same steps (like for like when monitors stopped rollouts early, where
+    the raw rollout MSE covers few steps and reads low)."""
+    done = [r for r in rows if r.ok and math.isfinite(relative_to_cv(r))]
+    return min(done, key=relative_to_cv, default=None)
 
 
-def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow], compare: bool) -> list[str]:
+@dataclass(frozen=True)
+class Comparison:
+    """The GNS (mean over its domain sweep's runs) against a baseline's best run, like for like."""
+
+    gns: float  # rollout MSE / constant velocity's over the same steps
+    baseline: float
+    gns_steps: float  # rollout steps covered, mean over the test rollouts (a monitor's stop ends one early)
+    baseline_steps: float
+
+    @property
+    def verdict(self) -> str:
+        """"yes" when the GNS has the lower error against constant velocity and its rollouts ran at least as
+        far, "no" when the baseline wins on both, "mixed" otherwise, "—" when either is unknown."""
+        if not all(math.isfinite(v) for v in (self.gns, self.baseline, self.gns_steps, self.baseline_steps)):
+            return "—"
+        if self.gns < self.baseline and self.gns_steps >= self.baseline_steps:
+            return "yes"
+        if self.gns > self.baseline and self.gns_steps <= self.baseline_steps:
+            return "no"
+        return "mixed"
+
+    def sentence(self, name: str, baseline: str) -> str:
+        reasons = {"yes": "lower error and rollouts that ran as far", "no": "the baseline's error is lower and its "
+                   "rollouts ran as far", "mixed": "the lower error and the longer rollouts are not the same model's"}
+        return (f"{reasons[self.verdict]}: {fmt(self.gns)}x against {fmt(self.baseline)}x constant velocity's "
+                f"error over the same steps; rollouts covered {self.gns_steps:.0f} against "
+                f"{self.baseline_steps:.0f} steps")
+
+
+def compare(gns_rows: list[RunRow], best: RunRow | None) -> Comparison:
+    done = [r for r in gns_rows if r.ok]
+    nan = math.nan
+    return Comparison(mean_std([relative_to_cv(r) for r in done])[0] if done else nan,
+                      relative_to_cv(best) if best else nan,
+                      mean_std([r.metric("rollout_steps") for r in done])[0] if done else nan,
+                      best.metric("rollout_steps") if best else nan)
+
+
+def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow], compare_runs: bool) -> list[str]:
     ref = domain_reference(sweep.domain)
     gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
     best = _best(rows)
     ours = best.metric("rollout_mse") if best else math.nan
     architecture = architecture_of(sweep)
     paper_cconv = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
+    like = compare(gns_rows, best)
     return [f"{ref.name if ref else sweep.domain} ({architecture})", fmt(gns),
             fmt(ours) + (f" (`{best.planned.name}`)" if best else ""),
-            f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare and best and gns > 0 else "—",
+            f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare_runs and best and gns > 0 else "—",
+            f"{fmt(like.gns)}x / {fmt(like.baseline)}x" if compare_runs else "—",
+            f"{fmt(like.gns_steps)} / {fmt(like.baseline_steps)}" if compare_runs else "—",
+            like.verdict if compare_runs else "—",
             fmt(ref.rollout_mse) if ref else "—", fmt(paper_cconv) if paper_cconv else "—",
             ratio(paper_cconv, ref.rollout_mse) if paper_cconv and ref else "—",
             run_ids_cell([r for r in [*gns_rows, *rows] if r.run_id])]
+
+
+def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[str]:
+    """One line per comparison: does the GNS beat the baseline here, and did it in the paper."""
+    lines = ["## Verdicts", "", "Does the GNS beat the baseline here? Computed from the table: *yes* when its rollout "
+             "MSE against constant velocity's over the same steps is lower and its rollouts ran at least as far "
+             "before any monitor stopped them, *no* when the baseline wins on both, *mixed* otherwise. One run a "
+             "point at this tier, so a small difference is within what a second seed could change.", ""]
+    for sweep, rows, gns_rows in collected:
+        ref = domain_reference(sweep.domain)
+        name, architecture = ref.name if ref else sweep.domain, architecture_of(sweep)
+        like = compare(gns_rows, _best(rows))
+        baseline = ARCHITECTURE_NAMES[architecture]
+        if like.verdict == "—":
+            lines.append(f"- {name}, GNS against {baseline}: not both run yet.")
+            continue
+        paper = ""
+        if architecture == "cconv" and ref and ref.cconv_rollout_mse and ref.rollout_mse:
+            paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(ref.cconv_rollout_mse)} "
+                     f"rollout MSE, {ratio(ref.cconv_rollout_mse, ref.rollout_mse)}).")
+        lines.append(f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence(name, baseline)}.{paper}")
+    return lines + [""]
 
 
 def _rollouts(row: RunRow | None, workdir: Path) -> list[RolloutResult]:
@@ -115,7 +191,8 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "(`sweeps/baselines/`) stands beside the GNS run of its domain sweep at the same tier; the paper's "
              "CConv figures are read off its bar chart (approximate).", "", *definitions_section(),
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
-             *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), ""]
+             *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
+             *(verdict_lines(collected) if compare else [])]
     boxbath = [(s, rows, gns) for s, rows, gns in collected if s.domain == "boxbath"]
     drawn = read_summary_extras(out_dir / SUMMARY_FILE).get("boxbath") or {}
     if boxbath:

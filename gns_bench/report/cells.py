@@ -54,6 +54,14 @@ def comparable_cv(row: RunRow) -> float:
     return math.nan if row.metric("rollout_stopped") > 0 else row.metric("baseline_cv_rollout_mse")
 
 
+def relative_to_cv(row: RunRow) -> float:
+    """A run's rollout MSE over constant velocity's on the same steps: like for like whether or not a monitor
+    stopped its rollouts (a rollout stopped early has a raw rollout MSE over few steps, which reads low), so what
+    the budget study ranks candidates by and the baselines report compares models by. NaN where unknown."""
+    baseline = comparable_cv(row)
+    return row.metric("rollout_mse") / baseline if baseline > 0 else math.nan
+
+
 def _paired_with_cv(rows: list[RunRow]) -> list[RunRow]:
     """The runs whose constant-velocity MSE over the GNS rollouts' own steps is known."""
     return [r for r in rows if comparable_cv(r) > 0]  # NaN (not finished, not logged) fails the test

@@ -14,7 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from gns_bench.report.cells import MISSING, comparable_cv, fmt, run_ids_cell, steps_covered  # noqa: E402
+from gns_bench.report.cells import MISSING, fmt, relative_to_cv, run_ids_cell, steps_covered  # noqa: E402
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
 from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 
@@ -47,17 +47,10 @@ def by_candidate(sweep: SweepSpec, rows: list[RunRow]) -> dict[str, list[RunRow]
     return {name: group for name, group in groups.items() if group}
 
 
-def against_cv(row: RunRow) -> float:
-    """A run's rollout MSE over constant velocity's on the same steps: like for like whether or not a monitor
-    stopped its rollouts, and so what the study ranks candidates by."""
-    baseline = comparable_cv(row)
-    return row.metric("rollout_mse") / baseline if baseline > 0 else math.nan
-
-
 def winner(groups: dict[str, list[RunRow]]) -> tuple[str, str]:
     """(the best candidate by its mean rollout MSE over constant velocity's on the same steps, a sentence on how
     clear its lead is against the seed spread)."""
-    means = {name: mean_std([against_cv(r) for r in group if r.ok]) for name, group in groups.items()}
+    means = {name: mean_std([relative_to_cv(r) for r in group if r.ok]) for name, group in groups.items()}
     ranked = sorted((m for m in means.items() if m[1][2]), key=lambda item: item[1][0])
     if not ranked:
         return "", "No candidate has finished yet."

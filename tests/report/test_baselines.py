@@ -36,11 +36,30 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     (row,) = [line for line in text.splitlines() if line.startswith("| tiny (cconv) |")]
     cells = [c.strip() for c in row.strip("|").split("|")]
     rows = baselines.collect(baseline, "smoke", tmp_path / "reports")
-    best = min(rows, key=lambda r: r.metric("rollout_mse"))
+    best = min(rows, key=baselines.relative_to_cv)  # like for like: against constant velocity over the same steps
     assert cells[2] == f"{best.metric('rollout_mse'):.3g} (`{best.planned.name}`)"  # the best of its sweep
     assert cells[3] == "—" and text.splitlines()[2].startswith("**Smoke tier")  # smoke compares nothing
     gns = baselines.collect(domain, "smoke", tmp_path / "reports")[0].metric("rollout_mse")
-    compared = baselines.comparison_row(baseline, rows, baselines.collect(domain, "smoke", tmp_path / "reports"),
-                                        compare=True)
+    gns_rows = baselines.collect(domain, "smoke", tmp_path / "reports")
+    compared = baselines.comparison_row(baseline, rows, gns_rows, compare_runs=True)
     ratio = best.metric("rollout_mse") / gns
     assert compared[3] == f"{ratio:.3g}x ({best.metric('rollout_mse'):.3g} / {gns:.3g})"
+    like = (baselines.relative_to_cv(gns_rows[0]), baselines.relative_to_cv(best))
+    assert compared[4] == f"{like[0]:.3g}x / {like[1]:.3g}x"
+    assert compared[6] == baselines.compare(gns_rows, best).verdict != "—"
+    assert "## Verdicts" not in text  # smoke: no verdict drawn
+    lines = baselines.verdict_lines([(baseline, rows, gns_rows)])
+    assert lines[-2].startswith(f"- tiny, GNS against CConv: **{compared[6]}**")
+
+
+@pytest.mark.parametrize(("gns", "baseline", "gns_steps", "baseline_steps", "verdict"), [
+    (0.3, 0.6, 200, 200, "yes"),       # lower error against constant velocity, rollouts as long
+    (0.3, 0.6, 200, 40, "yes"),        # and the baseline's stopped early (the paper's goop "exploding")
+    (0.6, 0.3, 200, 200, "no"),
+    (0.3, 0.6, 40, 200, "mixed"),      # lower error, but over rollouts a monitor ended early
+    (0.6, 0.3, 200, 40, "mixed"),
+    (0.3, float("nan"), 200, 0, "—"),  # the baseline has not run
+])
+def test_the_verdict_needs_lower_error_and_rollouts_as_long(gns: float, baseline: float, gns_steps: float,
+                                                            baseline_steps: float, verdict: str) -> None:
+    assert baselines.Comparison(gns, baseline, gns_steps, baseline_steps).verdict == verdict
