@@ -57,7 +57,7 @@ def architecture_of(sweep: SweepSpec) -> str:
     return sweep.plan("smoke")[0].config.model.architecture
 
 
-def _best(rows: list[RunRow]) -> RunRow | None:
+def best_run(rows: list[RunRow]) -> RunRow | None:
     """The baseline's best run, as the paper took CConv's best after its sweep (Sec. 5.5): the lowest rollout MSE
     against constant velocity's over the same steps (like for like when monitors stopped rollouts early, where
     the raw rollout MSE covers few steps and reads low)."""
@@ -106,7 +106,7 @@ def compare(gns_rows: list[RunRow], best: RunRow | None) -> Comparison:
 def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow], compare_runs: bool) -> list[str]:
     ref = domain_reference(sweep.domain)
     gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
-    best = _best(rows)
+    best = best_run(rows)
     ours = best.metric("rollout_mse") if best else math.nan
     architecture = architecture_of(sweep)
     paper_cconv = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
@@ -122,6 +122,98 @@ def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow],
             run_ids_cell([r for r in [*gns_rows, *rows] if r.run_id])]
 
 
+@dataclass(frozen=True)
+class Cost:
+    """One model's cost on one domain beside its error (issue #21: the comparison's time against error)."""
+
+    domain: str
+    model: str  # "GNS", "CConv", "DPI-Net"
+    train_seconds_per_step: float  # training wall time over its steps (mean over the model's runs)
+    train_seconds: float
+    rollout_seconds_per_step: float
+    against_cv: float  # rollout MSE / constant velocity's, same steps
+    hardware: str
+
+
+def _cost(domain: str, model: str, rows: list[RunRow]) -> Cost | None:
+    done = [r for r in rows if r.ok]
+    if not done:
+        return None
+
+    def mean(values: list[float]) -> float:
+        return mean_std(values)[0]
+    return Cost(domain, model, mean([r.metric("train/wall_time_s") / r.metric("train/final_step") for r in done]),
+                mean([r.metric("train/wall_time_s") for r in done]),
+                mean([r.metric("rollout_seconds_per_step") for r in done]),
+                mean([relative_to_cv(r) for r in done]),
+                "; ".join(sorted({r.tag("hardware", "?") for r in done})))
+
+
+def costs(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[Cost]:
+    """Per comparison domain, the GNS's cost (its domain runs, once a domain) and each baseline's best run's."""
+    out, seen = [], set()
+    for sweep, rows, gns_rows in collected:
+        ref = domain_reference(sweep.domain)
+        name = ref.name if ref else sweep.domain
+        best = best_run(rows)
+        for model, model_rows in (("GNS", gns_rows), (ARCHITECTURE_NAMES[architecture_of(sweep)],
+                                                      [best] if best else [])):
+            cost = _cost(name, model, model_rows) if (name, model) not in seen else None
+            if cost is not None:
+                seen.add((name, model))
+                out.append(cost)
+    return out
+
+
+def cost_figure(points: list[Cost], path: Path) -> Path | None:
+    """Error against constant velocity's (same steps) over training and rollout time a step, one point per model
+    and domain, coloured by model."""
+    points = [c for c in points if all(math.isfinite(v) and v > 0 for v in
+                                       (c.train_seconds_per_step, c.rollout_seconds_per_step, c.against_cv))]
+    if not points:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.4))
+    models = list(dict.fromkeys(c.model for c in points))
+    for ax, attribute, label in ((axes[0], "train_seconds_per_step", "training time a step (s)"),
+                                 (axes[1], "rollout_seconds_per_step", "rollout time a step (s)")):
+        for model in models:
+            mine = [c for c in points if c.model == model]
+            ax.scatter([getattr(c, attribute) for c in mine], [c.against_cv for c in mine], s=24,
+                       color=config_colour(model), label=model, zorder=3)
+            for c in mine:
+                ax.annotate(c.domain, (getattr(c, attribute), c.against_cv), fontsize=6, xytext=(3, 3),
+                            textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.axhline(1.0, color="0.6", lw=0.8, ls="--")  # constant velocity's own error
+        ax.set_xlabel(label, fontsize=8)
+        ax.set_ylabel("rollout MSE / constant velocity's,\nsame steps", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.margins(0.2)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path) -> list[str]:
+    rows = costs(collected)
+    if not rows:
+        return []
+    lines = ["## Cost beside error", "", "Each model's training time a step (its training wall time over its steps, "
+             "batch as its config sets it) and rollout time a step, on the machine its runs name, beside its rollout "
+             "MSE against constant velocity's over the same steps (below 1x beats the trivial baseline).", "",
+             "| domain | model | training s/step | training time (s) | rollout s/step | against constant velocity, "
+             "same steps | hardware |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {c.domain} | {c.model} | {fmt(c.train_seconds_per_step)} | {fmt(c.train_seconds)} | "
+              f"{fmt(c.rollout_seconds_per_step)} | {fmt(c.against_cv)}x | {c.hardware} |" for c in rows]
+    figure = cost_figure(rows, out_dir / "cost_vs_error.png")
+    if figure is not None:
+        lines += ["", f"![cost against error]({figure.name})"]
+    return lines + [""]
+
+
 def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[str]:
     """One line per comparison: does the GNS beat the baseline here, and did it in the paper."""
     lines = ["## Verdicts", "", "Does the GNS beat the baseline here? Computed from the table: *yes* when its rollout "
@@ -131,7 +223,7 @@ def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]])
     for sweep, rows, gns_rows in collected:
         ref = domain_reference(sweep.domain)
         name, architecture = ref.name if ref else sweep.domain, architecture_of(sweep)
-        like = compare(gns_rows, _best(rows))
+        like = compare(gns_rows, best_run(rows))
         baseline = ARCHITECTURE_NAMES[architecture]
         if like.verdict == "—":
             lines.append(f"- {name}, GNS against {baseline}: not both run yet.")
@@ -192,14 +284,14 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "CConv figures are read off its bar chart (approximate).", "", *definitions_section(),
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
-             *(verdict_lines(collected) if compare else [])]
+             *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir)]
     boxbath = [(s, rows, gns) for s, rows, gns in collected if s.domain == "boxbath"]
     drawn = read_summary_extras(out_dir / SUMMARY_FILE).get("boxbath") or {}
     if boxbath:
         with tempfile.TemporaryDirectory() as tmp:
-            models = {"gns": _rollouts(_best(boxbath[0][2]), Path(tmp) / "gns")}
+            models = {"gns": _rollouts(best_run(boxbath[0][2]), Path(tmp) / "gns")}
             for sweep, rows, _ in boxbath:
-                models[architecture_of(sweep)] = _rollouts(_best(rows), Path(tmp) / sweep.name)
+                models[architecture_of(sweep)] = _rollouts(best_run(rows), Path(tmp) / sweep.name)
         if any(models.values()):  # drawn afresh; else the last report's pictures stand (its summary lists them)
             figure = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
             drawn = {"rigidity": figure is not None, "rollouts": [

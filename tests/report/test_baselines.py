@@ -48,6 +48,13 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert compared[4] == f"{like[0]:.3g}x / {like[1]:.3g}x"
     assert compared[6] == baselines.compare(gns_rows, best).verdict != "—"
     assert "## Verdicts" not in text  # smoke: no verdict drawn
+    # cost beside error: the GNS and the baseline's best run, each at its own measured step times
+    costs = {c.model: c for c in baselines.costs([(baseline, rows, gns_rows)])}
+    assert set(costs) == {"GNS", "CConv"}
+    assert costs["CConv"].train_seconds_per_step == pytest.approx(
+        best.metric("train/wall_time_s") / best.metric("train/final_step"))
+    assert costs["GNS"].rollout_seconds_per_step == pytest.approx(gns_rows[0].metric("rollout_seconds_per_step"))
+    assert "## Cost beside error" in text and (tmp_path / "reports" / "baselines" / "smoke" / "cost_vs_error.png").is_file()
     lines = baselines.verdict_lines([(baseline, rows, gns_rows)])
     assert lines[-2].startswith(f"- tiny, GNS against CConv: **{compared[6]}**")
 
