@@ -626,3 +626,22 @@ def test_the_cpu_stress_sweeps_test_their_domain_sweeps_models() -> None:
         assert replace_config(tested.config, stress=StressConfig()) == trained.config, sweep.name
         checked += 1
     assert checked == 4  # WATERRAMPS, CONTINUOUS, MULTIMATERIAL, BOXBATH (the shaken box trains its own)
+
+
+def test_every_cpu_gns_run_follows_the_budget_studys_winner() -> None:
+    """The cpu tier is the budget study's winner (sweeps/tiers.toml): bf16, the paper's peak learning rate, the
+    decay at 10x per half of the run whatever a domain's steps. A domain sweep that sets its own steps and
+    forgets the decay (or a stress sweep that copies one and not the other) fails here. CConv and DPI-Net train
+    on their own papers' schedules (model/cconv.py, model/dpi.py)."""
+    checked = 0
+    for sweep in (load_sweep(p) for p in discover_sweeps()):
+        if sweep.kind == "study":
+            continue
+        for run in sweep.plan("cpu"):
+            train = run.config.train
+            if run.config.model.architecture != "gns":
+                continue
+            assert train.learning_rate_decay_steps * 2 == train.steps, (sweep.name, run.name)
+            assert train.precision == "bf16" and train.learning_rate == 1e-4, (sweep.name, run.name)
+            checked += 1
+    assert checked > 40
