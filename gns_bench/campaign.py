@@ -1,10 +1,11 @@
 """A campaign: sweeps run in priority order by one resumable command, then every report written.
 
-`sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they should fill in.
-`run_campaign` runs what each lacks at a tier (finished runs skipped, interrupted ones resumed from their
-checkpoints, runs another sweep trained recorded as shared), writes that sweep's report as soon as it is done
-so results land while the rest runs, and ends by writing every report. A sweep that fails is reported and the
-campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
+`sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they should fill in
+(`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped,
+interrupted ones resumed from their checkpoints, runs another sweep trained recorded as shared), writes that
+sweep's report as soon as it is done so results land while the rest runs, and ends by writing every report. A
+sweep that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command
+resumes it.
 """
 
 from __future__ import annotations
@@ -13,41 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from gns_bench.config import read_toml
 from gns_bench.report import write_all_reports, write_report
+from gns_bench.sweep.campaigns import Campaign
 from gns_bench.sweep.runner import RunOutcome, format_plan, prepare, run_sweep
-from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, SweepSpec, load_sweep
-
-CAMPAIGNS_DIR = SWEEPS_DIR / "campaigns"
-_KEYS = {"description", "sweeps"}
-
-
-@dataclass(frozen=True)
-class Campaign:
-    name: str
-    path: Path
-    description: str
-    sweeps: tuple[Path, ...]  # in priority order
-
-
-def load_campaign(path: str | Path, sweeps_dir: Path = SWEEPS_DIR) -> Campaign:
-    """A campaign file, every sweep it names checked to exist and load."""
-    path = Path(path)
-    data = read_toml(path, SweepError)
-    unknown = set(data) - _KEYS
-    if unknown:
-        raise SweepError(f"{path}: unknown key '{sorted(unknown)[0]}'; known keys: {sorted(_KEYS)}")
-    names = data.get("sweeps")
-    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
-        raise SweepError(f"{path}: 'sweeps': expected a non-empty list of sweep files relative to {sweeps_dir}")
-    if len(set(names)) != len(names):
-        raise SweepError(f"{path}: 'sweeps': {sorted({n for n in names if names.count(n) > 1})} listed twice")
-    sweeps = tuple(sweeps_dir / name for name in names)
-    for name, sweep in zip(names, sweeps, strict=True):
-        if not sweep.is_file():
-            raise SweepError(f"{path}: 'sweeps': no sweep file {name} in {sweeps_dir}")
-        load_sweep(sweep, sweeps_dir)  # a broken sweep fails here, before anything runs
-    return Campaign(path.stem, path, str(data.get("description", "")), sweeps)
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, load_sweep
 
 
 @dataclass

@@ -270,7 +270,8 @@ def _add_campaign(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_campaign(args: argparse.Namespace) -> None:
-    from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
+    from gns_bench.campaign import plan_campaign, run_campaign
+    from gns_bench.sweep.campaigns import load_campaign
 
     campaign = load_campaign(args.file)
     if args.dry_run or args.time:

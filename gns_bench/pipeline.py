@@ -195,8 +195,11 @@ def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: 
         raise ValueError(f"{dataset_dir}: dim {meta.dim} does not match the simulator's dim {simulator.dim}")
     trajectories = load_split(dataset_dir, eval_config.split, meta,
                               min_length=simulator.input_sequence_length + 1)
+    started = time.perf_counter()
     evaluation = evaluate(simulator, trajectories, eval_config, device=device, progress=progress,
                           bounds=meta.bounds if scene_bounds else None)
+    # what the evaluation cost (the front page sums it over a campaign; `sweep/timing.py` estimates it before)
+    evaluation.metrics["evaluation_seconds"] = time.perf_counter() - started
     _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split)
     return evaluation
 

@@ -7,10 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from gns_bench.campaign import load_campaign, plan_campaign, run_campaign
+from gns_bench.campaign import plan_campaign, run_campaign
 from gns_bench.datasets import ensure_dataset
 from gns_bench.evaluate.cost import EvaluationCost
-from gns_bench.sweep.spec import SWEEPS_DIR, SweepError
+from gns_bench.sweep.campaigns import load_campaign
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, load_sweep
 from gns_bench.train.rate import StepRate
 
 SWEEP = '''description = "{name}"
@@ -59,6 +60,16 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
     assert (tmp_path / "reports" / "domains" / "smoke" / "README.md").is_file()  # and every report at the end
     again = run_campaign(campaign, "smoke", progress=False, echo=lambda line: None, sweeps_dir=sweeps, **roots)
     assert [o.status for r in again for o in r.outcomes] == ["FINISHED", "SKIPPED"]  # resumed: only what lacked
+
+    # the front page states what the campaign trained and what that cost, each model once
+    from gns_bench.report.collect import collect
+    from gns_bench.report.index import campaign_section
+
+    lines = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))
+    rows = [r for p in campaign.sweeps for r in collect(load_sweep(p, sweeps), "smoke", tmp_path / "reports")]
+    assert len(rows) == 2 and all(r.metric("evaluation_seconds") > 0 for r in rows)
+    seconds = sum(r.metric("train/wall_time_s") for r in rows)
+    assert lines[-2].startswith(f"| smoke | 2 of 2 | {seconds:.0f} s | "), lines
 
 
 def test_a_campaign_naming_a_missing_sweep_fails_before_running(sweeps: Path) -> None:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gns_bench.data.format import load_split, read_metadata
+from gns_bench.durations import format_duration
 from gns_bench.evaluate.cost import EvaluationCost, evaluation_cost
 from gns_bench.sweep.runner import dataset_run_key, evaluation_data, format_plan, prepare, training_data, unstressed_key
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
@@ -89,14 +90,6 @@ def time_runs(runs: list[PlannedRun], status: dict[str, str], data_root: Path, *
 
 def _rate(steps_per_second: float) -> str:
     return f"{steps_per_second:.3g}" if steps_per_second < 1000 else f"{steps_per_second:,.0f}"
-
-
-def format_duration(seconds: float) -> str:
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
 
 
 def timing_columns(runs: list[PlannedRun], costs: dict[str, RunCost]) -> dict[str, dict[str, str]]:

@@ -54,7 +54,8 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert costs["CConv"].train_seconds_per_step == pytest.approx(
         best.metric("train/wall_time_s") / best.metric("train/final_step"))
     assert costs["GNS"].rollout_seconds_per_step == pytest.approx(gns_rows[0].metric("rollout_seconds_per_step"))
-    assert "## Cost beside error" in text and (tmp_path / "reports" / "baselines" / "smoke" / "cost_vs_error.png").is_file()
+    assert "## Cost beside error" in text
+    assert (tmp_path / "reports" / "baselines" / "smoke" / "cost_vs_error.png").is_file()
     lines = baselines.verdict_lines([(baseline, rows, gns_rows)])
     assert lines[-2].startswith(f"- tiny, GNS against CConv: **{compared[6]}**")
 
