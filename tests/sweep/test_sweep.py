@@ -643,5 +643,6 @@ def test_every_cpu_gns_run_follows_the_budget_studys_winner() -> None:
                 continue
             assert train.learning_rate_decay_steps * 2 == train.steps, (sweep.name, run.name)
             assert train.precision == "bf16" and train.learning_rate == 1e-4, (sweep.name, run.name)
+            assert run.config.eval.precision == "bf16", (sweep.name, run.name)  # rollouts as the runs train
             checked += 1
     assert checked > 40
