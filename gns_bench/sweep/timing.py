@@ -66,7 +66,7 @@ def measure_evaluation(run: PlannedRun, data_root: Path) -> EvaluationCost:
     return evaluation_cost(simulator, trajectories, run.config.eval)
 
 
-def time_runs(runs: list[PlannedRun], status: dict[str, str], data_root: Path, *, steps: int = 20,
+def time_runs(runs: list[PlannedRun], status: dict[str, str], data_root: Path, *, steps: int = 40,
               measured: dict[str, object] | None = None, echo: Callable[[str], None] = print
               ) -> dict[str, RunCost]:
     """The cost of every run whose dataset exists, by run name. `measured`: step rates by `cost_key` and
@@ -152,7 +152,7 @@ def total_line(total: Total) -> str:
     return line
 
 
-def timed_plan(sweep: SweepSpec, tier: str, data_root: Path, *, steps: int = 20, share: bool = True,
+def timed_plan(sweep: SweepSpec, tier: str, data_root: Path, *, steps: int = 40, share: bool = True,
                only: tuple[str, ...] | list[str] = (), measured: dict[str, object] | None = None,
                counted: set[str] | None = None, echo: Callable[[str], None] = print) -> Total:
     """Print the sweep's plan with each run's measured rate, training and evaluation time (generating nothing),

@@ -12,7 +12,7 @@ from gns_bench.data.format import load_split
 from gns_bench.evaluate.evaluate import evaluate
 from gns_bench.train.checkpoints import load_simulator
 from gns_bench.train.loop import learning_rate, train
-from gns_bench.train.rate import measure_step_rate
+from gns_bench.train.rate import measure_step_rate, steady_rate
 
 QUICK = ["model.message_passing_steps=2", "model.latent_size=64", "model.mlp_hidden_size=64",
          "train.batch_size=8", "train.learning_rate=2e-3", "train.learning_rate_decay_steps=2000",
@@ -57,6 +57,9 @@ def test_stop_after_runs_the_start_of_the_whole_run_and_the_rate_probe_uses_it(t
     rest = train(config, tiny_dataset, tmp_path / "start", resume=True, progress=False)
     assert rest.final_step == 30 and start.losses + rest.losses == straight.losses
 
+    # a recompile's step (50x the others) counts as a typical one; varying batch sizes still average
+    assert steady_rate([0.1] * 19 + [5.0]) == pytest.approx(10.0)
+    assert steady_rate([0.1, 0.2, 0.3]) == pytest.approx(3 / 0.6)
     rate = measure_step_rate(config, tiny_dataset, steps=6, warm_up=2)
     assert rate.steps_per_second > 0 and rate.settings == "fp32" and rate.measured_steps == 6
     assert rate.seconds_for(30) == pytest.approx(30 / rate.steps_per_second)
