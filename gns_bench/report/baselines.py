@@ -86,7 +86,7 @@ class Comparison:
             return "no"
         return "mixed"
 
-    def sentence(self, name: str, baseline: str) -> str:
+    def sentence(self) -> str:
         reasons = {"yes": "lower error and rollouts that ran as far", "no": "the baseline's error is lower and its "
                    "rollouts ran as far", "mixed": "the lower error and the longer rollouts are not the same model's"}
         return (f"{reasons[self.verdict]}: {fmt(self.gns)}x against {fmt(self.baseline)}x constant velocity's "
@@ -232,7 +232,7 @@ def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]])
         if architecture == "cconv" and ref and ref.cconv_rollout_mse and ref.rollout_mse:
             paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(ref.cconv_rollout_mse)} "
                      f"rollout MSE, {ratio(ref.cconv_rollout_mse, ref.rollout_mse)}).")
-        lines.append(f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence(name, baseline)}.{paper}")
+        lines.append(f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence()}.{paper}")
     return lines + [""]
 
 
