@@ -6,21 +6,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import torch
 
-from gns_bench.config import EvalConfig, ModelConfig
-from gns_bench.data.format import load_split, read_metadata
+from gns_bench.config import EvalConfig
+from gns_bench.data.format import load_split
 from gns_bench.evaluate import cost
 from gns_bench.model.simulator import LearnedSimulator
 
 
 @pytest.fixture(scope="module")
-def simulator(tiny_dataset: Path) -> LearnedSimulator:
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    config = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2,
-                         connectivity_radius=meta.default_connectivity_radius)
-    return LearnedSimulator(config, meta, 3e-4).eval()
+def simulator(untrained: LearnedSimulator) -> LearnedSimulator:
+    return untrained  # tests/evaluate/conftest.py
 
 
 class Clock:

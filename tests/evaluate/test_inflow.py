@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from gns_bench.config import EvalConfig, ModelConfig
+from gns_bench.config import EvalConfig
 from gns_bench.data.format import DatasetError, Trajectory, load_split, read_metadata, write_dataset
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.evaluate import evaluate, one_step_mse
@@ -20,12 +20,8 @@ BIRTHS = (9, 9, 12, 12)  # frames at which the four new particles enter
 
 
 @pytest.fixture(scope="module")
-def simulator(tiny_dataset: Path) -> LearnedSimulator:
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    config = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2,
-                         connectivity_radius=meta.default_connectivity_radius)
-    return LearnedSimulator(config, meta, 3e-4).eval()
+def simulator(untrained: LearnedSimulator) -> LearnedSimulator:
+    return untrained  # tests/evaluate/conftest.py
 
 
 def with_inflow(traj: Trajectory, radius: float, births: tuple[int, ...] = BIRTHS) -> Trajectory:

@@ -8,20 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from gns_bench.config import ModelConfig
 from gns_bench.data.format import load_split, read_metadata
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.rollout import RolloutState, RolloutStopped, rollout
 from gns_bench.model.simulator import LearnedSimulator
-
-
-@pytest.fixture(scope="module")
-def untrained(tiny_dataset: Path) -> LearnedSimulator:
-    torch.manual_seed(0)
-    meta = read_metadata(tiny_dataset)
-    config = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2,
-                         connectivity_radius=meta.default_connectivity_radius)
-    return LearnedSimulator(config, meta, 3e-4).eval()
 
 
 def test_kinematic_particles_follow_the_data(untrained: LearnedSimulator, tiny_dataset: Path) -> None:
