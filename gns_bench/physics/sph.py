@@ -126,7 +126,9 @@ def kernel_grad(d: vec3, h: float) -> vec3:
 
 # Positions stay fixed through a sub-step's two pressure solves, so `_neighbours` walks the 27 cells
 # once and caches each pair's W and m grad W; every later pass is a gather over that list. Boundary
-# neighbours are stored as -1 (they have zero velocity and no stiffness of their own).
+# neighbours are stored as -1 (they have zero velocity and no stiffness of their own). A kernel reads a
+# neighbour's arrays only under an `if j >= 0:` statement: Taichi evaluates both branches of a conditional
+# expression, so `v[j] if j >= 0 else ...` reads v[-1], which segfaulted when the array began a page.
 
 @ti.kernel
 def _neighbours(x: nd_vec3, origin: vec3, inv_cell: float, dims: ivec3, start: nd_i32, order: nd_i32,
@@ -184,7 +186,9 @@ def _solve_stiffness(v: nd_vec3, nbr: nd_nbr, grad: nd_grad, count: nd_i32, mass
         rate = 0.0  # D rho_i / Dt
         for k in range(count[i]):
             j = nbr[i, k]
-            vj = v[j] if j >= 0 else vec3(0.0)
+            vj = vec3(0.0)  # a wall neighbour (j = -1) does not move
+            if j >= 0:  # a statement, not `v[j] if j >= 0 else ...`: that would load v[-1] (see below)
+                vj = v[j]
             rate += mass * (v[i] - vj).dot(grad[i, k])
         if divergence:
             err = ti.max(rate, 0.0) if count[i] >= FULL_NEIGHBOURHOOD else 0.0
@@ -209,7 +213,9 @@ def _apply_stiffness(v: nd_vec3, nbr: nd_nbr, grad: nd_grad, count: nd_i32, mass
         dv = vec3(0.0)
         for k in range(count[i]):
             j = nbr[i, k]
-            kj = stiff[j] if j >= 0 else 0.0
+            kj = 0.0
+            if j >= 0:
+                kj = stiff[j]
             dv -= dt * mass * (stiff[i] + kj) * grad[i, k]
         v[i] += dv
 

@@ -1,6 +1,8 @@
 """The one place that initialises Taichi.
 
 CPU by default; CUDA when the machine has it, unless `GNS_BENCH_TAICHI_ARCH=cpu` says otherwise.
+`GNS_BENCH_TAICHI_DEBUG=1` turns on Taichi's debug mode: every field and ndarray access is bounds-checked
+(several times slower; the tests run the solvers this way once, tests/physics/test_bounds.py).
 Determinism does not depend on the thread count: the MPM particle-to-grid scatter accumulates in
 fixed-point integers (see mpm.py), whose atomic adds commute, so float summation order cannot leak
 into the data. Floating-point settings are pinned (no fast-math) so that one machine always gives
@@ -15,6 +17,7 @@ import taichi as ti
 
 _ARCH_ENV = "GNS_BENCH_TAICHI_ARCH"
 _THREADS_ENV = "GNS_BENCH_TAICHI_THREADS"
+_DEBUG_ENV = "GNS_BENCH_TAICHI_DEBUG"
 _state: dict[str, str] = {}
 
 
@@ -32,8 +35,11 @@ def ensure_taichi() -> str:
     if wanted not in ("auto", "cpu", "cuda"):
         raise ValueError(f"{_ARCH_ENV}={wanted!r}: expected auto, cpu or cuda")
     use_cuda = wanted == "cuda" or (wanted == "auto" and _cuda_available())
+    debug = os.environ.get(_DEBUG_ENV, "0")
+    if debug not in ("0", "1"):
+        raise ValueError(f"{_DEBUG_ENV}={debug!r}: expected 0 or 1")
     kwargs = dict(default_fp=ti.f32, default_ip=ti.i32, fast_math=False, random_seed=0,
-                  offline_cache=True, log_level=ti.WARN)
+                  offline_cache=True, log_level=ti.WARN, debug=debug == "1")
     if use_cuda:
         ti.init(arch=ti.cuda, **kwargs)
     else:
