@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -139,20 +139,21 @@ def _blank(ax: plt.Axes, text: str, colour: str) -> None:
     ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", fontsize=7, color=colour, wrap=True)
 
 
-def draw_timeline(ax: plt.Axes, total: int, steps: Iterable[int], stop: int | None, stop_label: str,
+def draw_timeline(ax: plt.Axes, total: int, steps: Iterable[int], stops: Sequence[tuple[int, str]],
                   marks: dict[int, str]) -> None:
     """A strip of the whole rollout: the drawn steps (ticks at step index + 1, as the panels are titled), the
-    stop (red) and flagged steps (orange). A monitor "at step s" judged the prediction after step s: it is
-    drawn between steps s and s + 1."""
+    stops (red: step, label; one per model drawn) and flagged steps (orange). A monitor "at step s" judged the
+    prediction after step s: it is drawn between steps s and s + 1."""
     ax.set_xlim(0.5, total + 0.5)
     ax.set_ylim(0, 1)
     ax.set_yticks([])
     for step in steps:
         ax.axvline(step + 1, ymax=0.45, c="grey", lw=1)
-    if stop is not None:
-        ax.axvspan(stop + 0.5, total + 0.5, color=STOP_COLOUR, alpha=0.15, lw=0)
+    for i, (stop, stop_label) in enumerate(sorted(stops)):
+        ax.axvspan(stop + 0.5, total + 0.5, color=STOP_COLOUR, alpha=0.15 / len(stops), lw=0)
         ax.axvline(stop + 0.5, c=STOP_COLOUR, lw=1.5)
-        ax.text(stop + 0.5, 0.55, stop_label, color=STOP_COLOUR, fontsize=7, ha="right" if stop > total / 2 else "left")
+        ax.text(stop + 0.5, 0.55 - 0.25 * i, stop_label, color=STOP_COLOUR, fontsize=7,
+                ha="right" if stop > total / 2 else "left")
     for step, label in sorted(marks.items()):
         ax.plot([step + 0.5], [0.8], marker="v", c=FLAG_COLOUR, ms=6)
         ax.annotate(f"step {step}: {label}", (step + 0.5, 0.8), xytext=(4, -3), textcoords="offset points",
@@ -165,26 +166,32 @@ def draw_timeline(ax: plt.Axes, total: int, steps: Iterable[int], stop: int | No
 
 
 def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None, num_frames: int = 4,
-                 title: str = "", marks: dict[int, str] | None = None) -> plt.Figure:
+                 title: str = "", marks: dict[int, str] | None = None,
+                 others: Sequence[tuple[str, RolloutResult]] = ()) -> plt.Figure:
     """Ground truth above GNS at `num_frames` steps over the whole horizon, all panels in one frame (equal
     aspect, the same limits: `bounds` per dimension, else the ground truth's extent); below, a timeline of the
     rollout with the step where a monitor stopped it and `marks` (step -> label, steps as monitors count them:
     `RolloutResult.stopped_at`, "energy_blowup at step 12"; e.g. where a monitor flagged a rollout that ran on).
-    GNS panels after a stop say so. 3D data is seen from the side (`VIEW_AXES`)."""
+    A model's panels after its stop say so. `others`: (name, rollout) of other models on the same trajectory,
+    one row each below the GNS (the baselines' side-by-side strips), their stops on the timeline too. 3D data
+    is seen from the side (`VIEW_AXES`)."""
     marks = dict(marks or {})
-    steps = frame_steps(result, num_frames)
-    total = max(result.predicted.shape[0], result.ground_truth.shape[0])
-    stop, stopped = stop_step(result), stop_text(result)
+    models = [("GNS", result), *others]
+    # evenly spaced steps, and the last step each model made before a monitor stopped it
+    steps = sorted(set(frame_steps(result, num_frames).tolist()) | {s - 1 for _, r in others if (s := stop_step(r))})
+    total = max(max(r.predicted.shape[0] for _, r in models), result.ground_truth.shape[0])
     dims = VIEW_AXES
     limits = ([bounds[dims[0]], bounds[dims[1]]] if bounds is not None else rollout_extent(result, dims))
     colours = np.array(type_colours(result.particle_type))
     size = float(np.clip(3000.0 / max(len(result.particle_type), 1), 1.0, 8.0))
-    columns = len(steps)
-    fig = plt.figure(figsize=(2.3 * columns + 0.6, 5.6), layout="constrained")
-    grid = fig.add_gridspec(3, columns, height_ratios=[1, 1, 0.28])
+    columns, rows = len(steps), [("ground truth", result.ground_truth, None), *((n, r.predicted, r) for n, r in models)]
+    aspect = (limits[1][1] - limits[1][0]) / max(limits[0][1] - limits[0][0], 1e-9)  # a panel's height / width
+    row_height = float(np.clip(2.1 * aspect + 0.5, 1.2, 2.8))  # no blank band between rows of a flat scene
+    fig = plt.figure(figsize=(2.3 * columns + 0.6, row_height * len(rows) + 0.6), layout="constrained")
+    grid = fig.add_gridspec(len(rows) + 1, columns, height_ratios=[1] * len(rows) + [0.28])
     first = None
     for column, step in enumerate(steps):
-        for row, (label, frames) in enumerate((("ground truth", result.ground_truth), ("GNS", result.predicted))):
+        for row, (label, frames, model) in enumerate(rows):
             ax = fig.add_subplot(grid[row, column], sharex=first, sharey=first)
             first = first or ax
             frame = _frame(frames, step)
@@ -192,8 +199,8 @@ def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None,
                 shown = result.shown_at(step)  # inflow: particles waiting to enter are hidden
                 xy = frame[shown][:, dims]
                 ax.scatter(xy[:, 0], xy[:, 1], s=size, c=colours[shown], linewidths=0)
-            elif row == 1 and stop is not None:
-                _blank(ax, stopped.replace(" (", "\n("), STOP_COLOUR)
+            elif model is not None and stop_step(model) is not None:
+                _blank(ax, stop_text(model).replace(" (", "\n("), STOP_COLOUR)
             else:
                 _blank(ax, f"no {label} frame", "grey")
             ax.set_xlim(limits[0])
@@ -201,11 +208,12 @@ def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None,
             ax.set_aspect("equal")
             ax.tick_params(labelsize=6)
             flagged = [f"{text} (step {s})" for s, text in sorted(marks.items()) if s <= step]
-            if row == 1 and flagged and frame is not None:
+            if model is result and flagged and frame is not None:
                 ax.text(0.02, 0.98, "flagged: " + "; ".join(flagged), transform=ax.transAxes, va="top",
                         fontsize=6, color=FLAG_COLOUR)
             if row == 0:
                 ax.set_title(f"step {step + 1}", fontsize=9)
+            if row < len(rows) - 1:
                 ax.tick_params(labelbottom=False)
             else:
                 ax.set_xlabel(f"{AXIS_NAMES[dims[0]]} ({POSITION_UNIT})", fontsize=7)
@@ -213,7 +221,9 @@ def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None,
                 ax.set_ylabel(f"{label}\n{AXIS_NAMES[dims[1]]} ({POSITION_UNIT})", fontsize=8)
             else:
                 ax.tick_params(labelleft=False)
-    draw_timeline(fig.add_subplot(grid[2, :]), total, steps, stop, stopped, marks)
+    stops = [(step, stop_text(r) if not others else f"{name}: {stop_text(r)}")
+             for name, r in models if (step := stop_step(r)) is not None]
+    draw_timeline(fig.add_subplot(grid[len(rows), :]), total, steps, stops, marks)
     fig.legend(handles=type_legend_handles(result.particle_type), loc="outside lower center",
                ncol=len(set(result.particle_type.tolist())), fontsize=7, frameon=False, title="particle type",
                title_fontsize=7)
@@ -223,9 +233,10 @@ def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None,
 
 
 def plot_rollout(result: RolloutResult, path: str | Path, bounds: list[list[float]] | None = None,
-                 num_frames: int = 4, title: str = "", marks: dict[int, str] | None = None) -> Path:
+                 num_frames: int = 4, title: str = "", marks: dict[int, str] | None = None,
+                 others: Sequence[tuple[str, RolloutResult]] = ()) -> Path:
     """`draw_rollout`, saved as a PNG."""
-    fig = draw_rollout(result, bounds, num_frames, title, marks)
+    fig = draw_rollout(result, bounds, num_frames, title, marks, others)
     path = Path(path)
     fig.savefig(path, dpi=80)
     plt.close(fig)

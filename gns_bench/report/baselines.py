@@ -269,6 +269,58 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> P
     return path
 
 
+# Where the paper shows a baseline failing (Sec. 5.5): CConv's cube losing its shape on BOXBATH and its goop
+# blowing apart on GOOP. There every model's rollout of one test trajectory is drawn side by side.
+FAILURE_DOMAINS = ("boxbath", "goop")
+FAILURE_WORDS = {"boxbath": "CConv lets the cube lose its shape, and DPI-Net keeps it rigid only by construction",
+                 "goop": "CConv's goop blows apart"}
+
+
+def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path,
+                    previous: dict | None) -> tuple[list[str], dict]:
+    """For each of `FAILURE_DOMAINS` with runs: test trajectory 0 as the GNS and each baseline's best run rolled
+    it out (`<domain>_strip.png`), and on BOXBATH the cube's rigidity drift of every model. Returns the lines
+    and what was drawn, which the summary keeps: when MLflow no longer holds the rollouts, the pictures the
+    last report drew stand (`previous`, that summary's record)."""
+    lines, drawn = [], {}
+    for domain in FAILURE_DOMAINS:
+        here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
+        if not here:
+            continue
+        with tempfile.TemporaryDirectory() as tmp:
+            models = {"gns": _rollouts(best_run(here[0][2]), Path(tmp) / "gns")}
+            for sweep, rows, _ in here:
+                models[architecture_of(sweep)] = _rollouts(best_run(rows), Path(tmp) / sweep.name)
+        record = (previous or {}).get(domain, {})
+        if any(models.values()):  # drawn afresh; else the last report's pictures stand
+            record = {}
+            if domain == "boxbath":
+                record["rigidity"] = rigidity_comparison(models, out_dir / "boxbath_rigidity.png") is not None
+            shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
+                     if rollouts and rollouts[0].predicted.shape[0]]
+            if len(shown) > 1 and shown[0][0] == ARCHITECTURE_NAMES["gns"]:
+                figures.rollout_strip(shown, out_dir / f"{domain}_strip.png",
+                                      f"{domain_reference(domain).name}: test trajectory 0, every model's rollout")
+                record["strip"] = [name for name, _ in shown]
+        if not record:
+            continue
+        drawn[domain] = record
+        name = domain_reference(domain).name
+        lines += [f"## {name}: the failure the paper shows", "",
+                  f"In the paper (Sec. 5.5) {FAILURE_WORDS[domain]}.", ""]
+        if record.get("strip") and (out_dir / f"{domain}_strip.png").is_file():
+            models_drawn = ", ".join(record["strip"])
+            lines += [f"Test trajectory 0, the ground truth above each model's rollout ({models_drawn}; each "
+                      "baseline's best run), at the same steps; a panel after a model's rollout was stopped by a "
+                      "health monitor says so.", "", f"![{name}: every model's rollout]({domain}_strip.png)", ""]
+        if record.get("rigidity") and (out_dir / "boxbath_rigidity.png").is_file():
+            lines += ["The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
+                      "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
+                      "built in (a rigid projection and root nodes), CConv neither.", "",
+                      "![rigidity](boxbath_rigidity.png)", ""]
+    return lines, drawn
+
+
 def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None = None) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     reports_root = reports_root or out_dir.parent.parent
@@ -285,33 +337,12 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
              *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir)]
-    boxbath = [(s, rows, gns) for s, rows, gns in collected if s.domain == "boxbath"]
-    drawn = read_summary_extras(out_dir / SUMMARY_FILE).get("boxbath") or {}
-    if boxbath:
-        with tempfile.TemporaryDirectory() as tmp:
-            models = {"gns": _rollouts(best_run(boxbath[0][2]), Path(tmp) / "gns")}
-            for sweep, rows, _ in boxbath:
-                models[architecture_of(sweep)] = _rollouts(best_run(rows), Path(tmp) / sweep.name)
-        if any(models.values()):  # drawn afresh; else the last report's pictures stand (its summary lists them)
-            figure = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
-            drawn = {"rigidity": figure is not None, "rollouts": [
-                name for name, rollouts in models.items() if rollouts and rollouts[0].predicted.shape[0]]}
-            for name in drawn["rollouts"]:
-                figures.rollout_png(models[name][0], out_dir / f"boxbath_{name}.png",
-                                    f"{ARCHITECTURE_NAMES[name]}: BOXBATH test trajectory 0")
-        if drawn.get("rigidity") and (out_dir / "boxbath_rigidity.png").is_file():
-            lines += ["## BOXBATH: keeping the cube rigid", "",
-                      "The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
-                      "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
-                      "built in (a rigid projection and root nodes), CConv neither.", "",
-                      "![rigidity](boxbath_rigidity.png)", ""]
-            for name in drawn.get("rollouts", []):
-                if (out_dir / f"boxbath_{name}.png").is_file():
-                    lines += [f"![{ARCHITECTURE_NAMES[name]} on BOXBATH](boxbath_{name}.png)", ""]
+    failures, drawn = failure_section(collected, out_dir, read_summary_extras(out_dir / SUMMARY_FILE).get("failures"))
+    lines += failures
     (out_dir / SUMMARY_FILE).write_text(json.dumps(
         {"note": "written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow no longer "
                  "holds the runs (their numbers are in each baseline sweep's own summary)",
-         "runs": [], "extras": {"boxbath": drawn} if drawn else {}}, indent=1, sort_keys=True) + "\n")
+         "runs": [], "extras": {"failures": drawn} if drawn else {}}, indent=1, sort_keys=True) + "\n")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

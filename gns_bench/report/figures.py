@@ -244,6 +244,20 @@ def rollout_png(result: RolloutResult, path: Path, title: str, marks: dict[int, 
     return plot_rollout(_thin(result), path, None, num_frames=4, title=title, marks=marks)
 
 
+def rollout_strip(models: Sequence[tuple[str, RolloutResult]], path: Path, title: str) -> Path:
+    """One test trajectory as each model rolled it out, a row per model below the ground truth, at the same
+    steps (the GNS's 4 evenly spaced ones and each model's last before a monitor stopped it). The first model
+    is the GNS; every rollout must be of the same trajectory."""
+    (_, first), others = models[0], models[1:]
+    for name, other in others:
+        start, first_start = other.initial_window[-1], first.initial_window[-1]
+        if start.shape != first_start.shape or not np.array_equal(start, first_start):
+            raise ValueError(f"{path}: {name}'s rollout does not start where the {models[0][0]}'s does: not "
+                             "the same test trajectory")
+    return plot_rollout(_thin(first), path, None, num_frames=4, title=title,
+                        others=[(name, _thin(other)) for name, other in others])
+
+
 def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int = 30, fps: int = 8,
                 marks: dict[int, str] | None = None) -> Path:
     """An animation: ground truth on the left, GNS on the right, in one frame, at most `max_frames` frames over

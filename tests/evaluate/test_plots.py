@@ -115,3 +115,23 @@ def test_an_empty_rollout_cannot_be_drawn() -> None:
     empty = RolloutResult(np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros((3, 3, 2)), np.array([5, 5, 5]))
     with pytest.raises(ValueError, match="empty rollout"):
         draw_rollout(empty)
+
+
+def test_other_models_get_a_row_each_with_their_own_stop(tmp_path: Path) -> None:
+    gns = synthetic_rollout()
+    cconv = synthetic_rollout(stopped_at=5, reason="out_of_bounds at step 5: a particle left the box")
+    dpi = synthetic_rollout()
+    fig = draw_rollout(gns, num_frames=4, others=[("CConv", cconv), ("DPI-Net", dpi)])
+    panels = _panels(fig)
+    titles = [ax.get_title() for ax in panels if ax.get_title()]
+    assert titles == ["step 1", "step 5", "step 7", "step 14", "step 20"]  # CConv's last step before its stop added
+    labels = [ax.get_ylabel().split("\n")[0] for ax in panels if ax.get_ylabel()]
+    assert labels == ["ground truth", "GNS", "CConv", "DPI-Net"]  # a row per model below the ground truth
+    assert len(panels) == 4 * len(titles)
+    cconv_row = panels[2::4]
+    after_stop = [ax for ax, title in zip(cconv_row, titles, strict=True) if int(title.split()[1]) > 5]
+    assert after_stop and all("stopped at step 5 (out_of_bounds)" in " ".join(t.get_text() for t in ax.texts)
+                              .replace("\n", " ") for ax in after_stop)
+    assert all(ax.collections for ax in panels[1::4] + panels[3::4])  # GNS and DPI ran the whole horizon
+    assert "CConv: stopped at step 5 (out_of_bounds)" in _texts(fig)  # on the timeline, named
+    plt.close(fig)

@@ -6,8 +6,10 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from gns_bench.evaluate.result import RolloutResult
 from gns_bench.report import baselines
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
@@ -71,3 +73,33 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
 def test_the_verdict_needs_lower_error_and_rollouts_as_long(gns: float, baseline: float, gns_steps: float,
                                                             baseline_steps: float, verdict: str) -> None:
     assert baselines.Comparison(gns, baseline, gns_steps, baseline_steps).verdict == verdict
+
+
+def _drift(n_steps: int, speed: float, stopped_at: int | None = None) -> RolloutResult:
+    """A 2D blob of water drifting right at `speed` a step (ground truth at 0.005)."""
+    start = np.random.default_rng(0).uniform(0.3, 0.7, size=(40, 2)).astype(np.float32)
+    steps = np.arange(1, n_steps + 1, dtype=np.float32)[:, None, None]
+    truth, predicted = (start + s * steps * np.array([1.0, 0.0], np.float32) for s in (0.005, speed))
+    window = np.stack([start] * 3)
+    return RolloutResult(predicted[:stopped_at], truth, window, np.full(40, 5), stopped_at,
+                                   None if stopped_at is None else "out_of_bounds at step 9: a particle left")
+
+
+def test_the_failure_the_paper_shows_is_drawn_model_beside_model(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-goop.toml")
+    rollouts = {"gns run": [_drift(30, 0.006)], "cconv run": [_drift(30, 0.02, stopped_at=9)]}
+    monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row, []))
+    collected = [(cconv, ["cconv run"], ["gns run"])]
+    lines, drawn = baselines.failure_section(collected, tmp_path, previous=None)
+    assert drawn == {"goop": {"strip": ["GNS", "CConv"]}}
+    assert "## GOOP: the failure the paper shows" in lines and "![GOOP: every model's rollout](goop_strip.png)" in lines
+    assert (tmp_path / "goop_strip.png").is_file()
+    # MLflow no longer holds the rollouts: the pictures the last report drew stand, and only those
+    rollouts.clear()
+    assert baselines.failure_section(collected, tmp_path, previous=drawn) == (lines, drawn)
+    assert baselines.failure_section(collected, tmp_path, previous=None) == ([], {})
+    # a domain where the paper shows no failure gets no strip
+    sand = load_sweep(SWEEPS_DIR / "baselines" / "cconv-sand.toml")
+    assert baselines.failure_section([(sand, ["cconv run"], ["gns run"])], tmp_path, previous=None) == ([], {})

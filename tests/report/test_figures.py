@@ -125,6 +125,17 @@ def test_rigidity_figure_draws_gns_and_ground_truth(cube: np.ndarray, tmp_path: 
 # Rollouts and units
 # ----------------------------------------------------------------------------------------------
 
+def test_strip_draws_every_model_of_one_trajectory_and_refuses_two(cube: np.ndarray, tmp_path: Path) -> None:
+    gns, cconv = boxbath_like(cube, 30), boxbath_like(cube, 30, stopped_at=12)
+    path = figures.rollout_strip([("GNS", gns), ("CConv", cconv)], tmp_path / "strip.png", "BOXBATH")
+    image = matplotlib.image.imread(path)
+    single = matplotlib.image.imread(figures.rollout_png(gns, tmp_path / "single.png", "BOXBATH"))
+    assert image.shape[0] > single.shape[0] and image.std() > 0  # one more row than GNS alone
+    moved = RolloutResult(cconv.predicted, cconv.ground_truth, cconv.initial_window + 0.1, cconv.particle_type)
+    with pytest.raises(ValueError, match="CConv's rollout does not start where the GNS's does"):
+        figures.rollout_strip([("GNS", gns), ("CConv", moved)], tmp_path / "bad.png", "BOXBATH")
+
+
 def test_gif_of_a_stopped_rollout_runs_the_whole_horizon(cube: np.ndarray, tmp_path: Path) -> None:
     result = boxbath_like(cube, 30, stopped_at=12)
     path = figures.rollout_gif(result, tmp_path / "stopped.gif", "stopped", max_frames=10, marks={5: "energy"})
