@@ -3,7 +3,8 @@
 `sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they should fill in
 (`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped,
 interrupted ones resumed from their checkpoints, runs another sweep trained recorded as shared), writes that
-sweep's report as soon as it is done so results land while the rest runs, and ends by writing every report. A
+sweep's report as soon as it is done so results land while the rest runs, with the pages that read every sweep
+(domain table, stability, baselines, front page: `write_overviews`), and ends by writing every report. A
 sweep that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command
 resumes it.
 """
@@ -14,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from gns_bench.report import write_all_reports, write_report
+from gns_bench.report import write_all_reports, write_overviews, write_report
 from gns_bench.sweep.campaigns import Campaign
 from gns_bench.sweep.runner import RunOutcome, format_plan, prepare, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, load_sweep
@@ -52,8 +53,8 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
                  reports_root: Path = Path("reports"), launcher: str = "local", cluster: str | None = None,
                  progress: bool = True, echo: Callable[[str], None] = print,
                  sweeps_dir: Path = SWEEPS_DIR, parallel: int = 1) -> list[SweepResult]:
-    """Run every sweep of the campaign at `tier` in order, writing each one's report when it is done, then
-    every report (`write_all_reports`: the domain table and stability pages too). `parallel`: runs at once
+    """Run every sweep of the campaign at `tier` in order, writing each one's report and the overviews when it
+    is done, then every report (`write_all_reports`). `parallel`: runs at once
     within each sweep (`run_sweep`)."""
     results = []
     for index, path in enumerate(campaign.sweeps, 1):
@@ -69,7 +70,8 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
             results.append(SweepResult(sweep.name, [], f"{type(exc).__name__}: {exc}"))
             continue
         results.append(SweepResult(sweep.name, outcomes))
-        echo(f"  report: {write_report(path, tier, reports_root)}")
+        for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:
+            echo(f"  report: {written}")
     for written in write_all_reports(tier, reports_root, sweeps_dir):
         echo(f"  report: {written}")
     return results

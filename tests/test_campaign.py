@@ -53,10 +53,17 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
 
     monkeypatch.setattr(runner, "execute_run", first_fails)
     roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
-    results = run_campaign(campaign, "smoke", progress=False, echo=lambda line: None, sweeps_dir=sweeps, **roots)
+    said: list[str] = []
+    results = run_campaign(campaign, "smoke", progress=False, echo=said.append, sweeps_dir=sweeps, **roots)
     assert order == ["domain-two", "domain-one"]  # the campaign's order, and it went on past the failure
     assert results[0].error.startswith("RuntimeError: dataset on fire") and results[1].outcomes[0].status == "FINISHED"
     assert (tmp_path / "reports" / "domain-one" / "smoke" / "README.md").is_file()  # written when it was done
+    reports = [line.split("report: ")[1] for line in said if line.startswith("  report: ")]
+    overviews = [str(tmp_path / "reports" / page / "smoke" / "README.md")
+                 for page in ("domains", "stability", "baselines")]
+    # with the pages that read every sweep, so the reports agree at any point, before the final rewrite of all
+    assert reports[:5] == [str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md"), *overviews,
+                           str(tmp_path / "reports" / "README.md")]
     assert (tmp_path / "reports" / "domains" / "smoke" / "README.md").is_file()  # and every report at the end
     again = run_campaign(campaign, "smoke", progress=False, echo=lambda line: None, sweeps_dir=sweeps, **roots)
     assert [o.status for r in again for o in r.outcomes] == ["FINISHED", "SKIPPED"]  # resumed: only what lacked

@@ -425,8 +425,14 @@ def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
         rows = collect(spec, tier, reports_root)
         if any(row.record for row in rows):
             written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
-    written.append(write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier))
-    written.append(write_stability_report(tier, reports_root / "stability" / tier))
-    written.append(write_baselines_report(tier, reports_root / "baselines" / tier, reports_root))
-    written.append(write_index(reports_root))
-    return written
+    return written + write_overviews(tier, reports_root)
+
+
+def write_overviews(tier: str, reports_root: Path = Path("reports")) -> list[Path]:
+    """The pages that read every sweep of a tier: the domain table, the stability and baselines reports (gaps
+    shown as missing), then the front page. A campaign rewrites them after each sweep, so that the committed
+    reports agree with each other at any point."""
+    return [write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier),
+            write_stability_report(tier, reports_root / "stability" / tier),
+            write_baselines_report(tier, reports_root / "baselines" / tier, reports_root),
+            write_index(reports_root)]
