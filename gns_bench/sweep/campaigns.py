@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gns_bench.config import read_toml
-from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, load_sweep
+from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, load_sweep, reject_unknown_keys
 
 CAMPAIGNS_DIR = SWEEPS_DIR / "campaigns"
 _KEYS = {"description", "sweeps"}
@@ -26,9 +26,7 @@ def load_campaign(path: str | Path, sweeps_dir: Path = SWEEPS_DIR) -> Campaign:
     """A campaign file, every sweep it names checked to exist and load."""
     path = Path(path)
     data = read_toml(path, SweepError)
-    unknown = set(data) - _KEYS
-    if unknown:
-        raise SweepError(f"{path}: unknown key '{sorted(unknown)[0]}'; known keys: {sorted(_KEYS)}")
+    reject_unknown_keys(data, _KEYS, path)
     names = data.get("sweeps")
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise SweepError(f"{path}: 'sweeps': expected a non-empty list of sweep files relative to {sweeps_dir}")

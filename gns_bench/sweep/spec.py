@@ -201,12 +201,18 @@ def _grid_table(value: Any, path: Path, where: str) -> dict[str, tuple[Any, ...]
     return grid
 
 
+def reject_unknown_keys(table: dict, known: set[str], path: Path, where: str = "") -> None:
+    """Raise `SweepError` naming the file and the first key of `table` (under `where`) not in `known`."""
+    unknown = set(table) - known
+    if unknown:
+        key = f"{where}.{sorted(unknown)[0]}" if where else sorted(unknown)[0]
+        raise SweepError(f"{path}: unknown key '{key}'; known keys: {sorted(known)}")
+
+
 def _tier_table(value: Any, path: Path, where: str, base: TierSpec | None) -> TierSpec:
     if not isinstance(value, dict):
         raise SweepError(f"{path}: '{where}' must be a table")
-    unknown = set(value) - _TIER_KEYS
-    if unknown:
-        raise SweepError(f"{path}: unknown key '{where}.{sorted(unknown)[0]}'; known keys: {sorted(_TIER_KEYS)}")
+    reject_unknown_keys(value, _TIER_KEYS, path, where)
     dataset_tier = value.get("dataset_tier", base.dataset_tier if base else None)
     if dataset_tier not in TIERS:
         raise SweepError(f"{path}: '{where}.dataset_tier': expected one of {list(TIERS)}, got {dataset_tier!r}")
@@ -241,10 +247,7 @@ def _candidates_table(value: Any, path: Path) -> dict[str, Candidate]:
         where = f"candidates.{name}"
         if not isinstance(table, dict):
             raise SweepError(f"{path}: '{where}' must be a table")
-        unknown = set(table) - _CANDIDATE_KEYS
-        if unknown:
-            raise SweepError(f"{path}: unknown key '{where}.{sorted(unknown)[0]}'; known keys: "
-                             f"{sorted(_CANDIDATE_KEYS)}")
+        reject_unknown_keys(table, _CANDIDATE_KEYS, path, where)
         dataset_tier = table.get("dataset_tier")
         if dataset_tier is not None and dataset_tier not in TIERS:
             raise SweepError(f"{path}: '{where}.dataset_tier': expected one of {list(TIERS)}, got {dataset_tier!r}")
@@ -277,9 +280,7 @@ def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
     sweeps_dir = sweeps_dir or _find_sweeps_dir(path)
     defaults = load_tier_defaults(sweeps_dir)
     data = read_toml(path, SweepError)
-    unknown = set(data) - _SWEEP_KEYS
-    if unknown:
-        raise SweepError(f"{path}: unknown key '{sorted(unknown)[0]}'; known keys: {sorted(_SWEEP_KEYS)}")
+    reject_unknown_keys(data, _SWEEP_KEYS, path)
     domain = data.get("domain")
     if not isinstance(domain, str) or not domain:
         raise SweepError(f"{path}: 'domain': expected a domain id such as \"goop\" or \"tiny\"")
