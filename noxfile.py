@@ -7,7 +7,7 @@
     nox -s ui                 the MLflow UI on 127.0.0.1
     nox -s report -- SWEEP    a sweep's report from MLflow (markdown + PNG) into reports/
     nox -s bench              the speed benchmark into reports/bench/
-    nox -s device             on a lent GPU: CUDA tests, GPU benchmark, 4 runs at once (reports/bench/device/)
+    nox -s device             on a lent GPU: CUDA tests, GPU benchmark, 4 runs at once (reports/bench/<gpu>/)
     nox -s <sweep> -- TIER    one session per sweep file (sweeps/**/*.toml), TIER smoke|small|cpu|paper
                               e.g. nox -s ablation-noise_std -- small; `nox -l` lists them
     nox -s campaign-paper -- TIER   every sweep of sweeps/campaigns/paper.toml in order, then every report
@@ -71,19 +71,10 @@ def bench(session: nox.Session) -> None:
 
 @nox.session(venv_backend="none")
 def device(session: nox.Session) -> None:
-    """nox -s device: on a lent GPU, in about 9 minutes: the CUDA tests, the quick benchmark on the GPU, and 4
-    runs of a sweep at once against one at a time (`--parallel`); results into reports/bench/device/. It runs in
-    the environment at hand (a GPU machine's own CUDA torch, gns-bench's dependencies installed; nothing is
-    installed, since such machines may reach no package index)."""
-    out = Path("reports/bench/device")
-    out.mkdir(parents=True, exist_ok=True)
-    python = [sys.executable, "-m"]
-    session.run(*python, "pytest", "-m", "cuda", "-p", "no:cacheprovider", "-q", f"--junitxml={out / 'cuda-tests.xml'}",
-                external=True)
-    session.run(*python, "gns_bench.cli", "bench", "--quick", "--device", "cuda", "--no-mlflow", "--out", str(out),
-                external=True)
-    session.run(*python, "gns_bench.bench.parallel", "--parallel", "4", "--device", "cuda", "--out", str(out),
-                external=True)
+    """nox -s device: on a lent GPU, the checks of gns_bench/bench/device.py (CUDA tests, the benchmark on the
+    GPU, 4 runs at once) into reports/bench/<gpu>/, in the environment at hand: such machines may reach no
+    package index, so nothing is installed (that module's docstring lists what must be there)."""
+    session.run(sys.executable, "-m", "gns_bench.bench.device", *session.posargs, external=True)
 
 
 @nox.session

@@ -63,3 +63,30 @@ def test_training_on_the_gpu_learns_and_beats_constant_velocity(tiny_dataset: Pa
     simulator, config, _ = load_simulator(result.checkpoint, device="cuda")
     m = evaluate(simulator, load_split(tiny_dataset, "test"), config.eval, device="cuda", progress=False).metrics
     assert m["rollout_mse"] < 0.1 * m["baseline_cv_rollout_mse"], m
+
+
+@pytest.mark.parametrize("architecture", ["cconv", "dpi"])
+def test_a_baseline_trains_on_the_gpu_and_measures_as_on_the_cpu(architecture: str, tiny_dataset: Path,
+                                                                 tmp_path: Path) -> None:
+    """The paper's baselines (Sec. 5.5) through the same loop on CUDA: the trained network, moved to the CPU,
+    gives the same one-step and short-rollout errors as on the GPU."""
+    from gns_bench.config import load_config
+    from gns_bench.data.format import load_split
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.train.checkpoints import load_simulator
+    from gns_bench.train.loop import train
+
+    overrides = [f"model.architecture={architecture}", "train.steps=40", "train.log_every=20", "train.device=cuda",
+                 "eval.max_trajectories=1", "eval.rollout_steps=5", "eval.one_step_windows=5"]
+    result = train(load_config(None, overrides), tiny_dataset, tmp_path / "run", progress=False)
+    assert np.isfinite(result.losses).all() and len(result.losses) > 0
+    test = load_split(tiny_dataset, "test")
+    metrics = {}
+    for device in ("cuda", "cpu"):
+        simulator, config, _ = load_simulator(result.checkpoint, device=device)
+        assert next(simulator.parameters()).device.type == device
+        metrics[device] = evaluate(simulator, test, config.eval, device=device, progress=False).metrics
+    gpu, cpu = metrics["cuda"], metrics["cpu"]
+    assert np.isfinite(gpu["one_step_mse"]) and np.isfinite(gpu["rollout_mse"])
+    np.testing.assert_allclose(gpu["one_step_mse"], cpu["one_step_mse"], rtol=1e-3)
+    np.testing.assert_allclose(gpu["rollout_mse"], cpu["rollout_mse"], rtol=1e-2)

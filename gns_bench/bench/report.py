@@ -226,6 +226,29 @@ def machine_benchmarks(root: Path) -> list[tuple[str, dict[str, Any]]]:
     return [(path.parent.name, json.loads(path.read_text())) for path in sorted(root.glob("*/bench.json"))]
 
 
+def _extra_checks(folder: Path) -> list[str]:
+    """What a machine's folder holds beside the benchmark: the GPU check's CUDA tests (JUnit XML) and its runs-at-
+    once timing (parallel.json), one line each, as measured (gns_bench/bench/device.py)."""
+    import json
+    import xml.etree.ElementTree as ElementTree
+
+    lines = []
+    if (folder / "cuda-tests.xml").is_file():
+        suite = ElementTree.parse(folder / "cuda-tests.xml").getroot()
+        suite = suite if suite.tag == "testsuite" else suite.find("testsuite")
+        counts = {k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
+        passed = counts["tests"] - counts["failures"] - counts["errors"] - counts["skipped"]
+        lines.append(f"- CUDA tests (`tests/test_cuda.py`): {passed} of {counts['tests']} passed, "
+                     f"{counts['failures'] + counts['errors']} failed, {counts['skipped']} skipped "
+                     f"([cuda-tests.xml]({folder.name}/cuda-tests.xml)).")
+    if (folder / "parallel.json").is_file():
+        r = json.loads((folder / "parallel.json").read_text())
+        lines.append(f"- {r['runs']} runs at once ({r['steps']} training steps each): {r['seconds_at_once']:.1f} s, "
+                     f"against {r['seconds_one_at_a_time']:.1f} s one after another, a {r['speedup']:.2f}x speed-up "
+                     f"([parallel.md]({folder.name}/parallel.md)).")
+    return [*lines, ""] if lines else []
+
+
 def write_bench_index(root: Path) -> Path:
     """`root/README.md`: the targets of every machine benchmarked under `root` (each folder's bench.json),
     side by side, each linking to its full tables. Machines differ in what is fastest (issue #22), so each
@@ -239,7 +262,7 @@ def write_bench_index(root: Path) -> Path:
         quick = " (quick sizes)" if results.get("settings", {}).get("repeats", 5) < 5 else ""
         lines += [f"## {env['hardware']}{quick}", "",
                   f"[{folder}/]({folder}/README.md): device `{env['device']}`, torch {env['torch']}, "
-                  f"{env['threads']} threads.", "", *targets_table(results), ""]
+                  f"{env['threads']} threads.", "", *targets_table(results), "", *_extra_checks(root / folder)]
     if not found:
         lines.append(f"No benchmark yet: run `gns-bench bench` (it writes {root}/<machine>/).")
     path = root / "README.md"
