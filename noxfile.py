@@ -101,14 +101,15 @@ def shared_sweep_env(session: nox.Session) -> Path:
     return bin_dir
 
 
-def _sweep_session(path: Path):
+def _tier_session(command: str, path: Path, doc: str):
+    """A session that runs `gns-bench COMMAND PATH --tier TIER [options]` in the shared sweep environment."""
     def session(session: nox.Session) -> None:
         bin_dir = shared_sweep_env(session)
         tier = session.posargs[0] if session.posargs else "smoke"
-        session.run(str(bin_dir / "gns-bench"), "sweep", str(path), "--tier", tier, *session.posargs[1:],
+        session.run(str(bin_dir / "gns-bench"), command, str(path), "--tier", tier, *session.posargs[1:],
                     external=True)
 
-    session.__doc__ = f"sweep {path} (posargs: TIER [gns-bench sweep options])"
+    session.__doc__ = doc
     return session
 
 
@@ -121,20 +122,11 @@ for _path in sorted(Path("sweeps").rglob("*.toml")):
     if not _naming.is_sweep_file(_path, Path("sweeps")):
         continue
     _name = _naming.sweep_name(_path, Path("sweeps"))
-    nox.session(name=_name, venv_backend="none")(_sweep_session(_path))
-
-
-def _campaign_session(path: Path):
-    def session(session: nox.Session) -> None:
-        bin_dir = shared_sweep_env(session)
-        tier = session.posargs[0] if session.posargs else "smoke"
-        session.run(str(bin_dir / "gns-bench"), "campaign", str(path), "--tier", tier, *session.posargs[1:],
-                    external=True)
-
-    session.__doc__ = f"campaign {path}: its sweeps in order, then every report (posargs: TIER [options])"
-    return session
+    nox.session(name=_name, venv_backend="none")(
+        _tier_session("sweep", _path, f"sweep {_path} (posargs: TIER [gns-bench sweep options])"))
 
 
 # One session per campaign file: sweeps/campaigns/paper.toml -> campaign-paper.
 for _path in sorted(Path("sweeps/campaigns").glob("*.toml")):
-    nox.session(name=f"campaign-{_path.stem}", venv_backend="none")(_campaign_session(_path))
+    nox.session(name=f"campaign-{_path.stem}", venv_backend="none")(_tier_session(
+        "campaign", _path, f"campaign {_path}: its sweeps in order, then every report (posargs: TIER [options])"))
