@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import torch
 
@@ -25,6 +26,28 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """Which generation the CPU is, where its model name does not say ("AMD EPYC" names both Zen 4 and Zen 5
+    parts): its family, model and stepping and its clock, from /proc/cpuinfo; "" where that file is missing.
+    Step rates of the same run differed by a third between sessions on "AMD EPYC" machines (reports/NOTES.md)."""
+    fields: dict[str, str] = {}
+    try:
+        for line in open(cpuinfo, encoding="utf-8"):
+            key, _, value = line.partition(":")
+            key = key.strip()
+            if key in ("cpu family", "model", "stepping", "cpu MHz") and key not in fields:
+                fields[key] = value.strip()
+            elif not line.strip() and fields:
+                break
+    except OSError:
+        return ""
+    parts = [f"{name} {fields[key]}" for name, key in (("family", "cpu family"), ("model", "model"),
+                                                       ("stepping", "stepping")) if key in fields]
+    if "cpu MHz" in fields:
+        parts.append(f"{float(fields['cpu MHz']):.0f} MHz")
+    return ", ".join(parts)
 
 
 def cpu_features() -> list[str]:

@@ -72,10 +72,15 @@ def hardware_description(device: str) -> str:
 
 
 def environment_tags(device: str) -> dict[str, str]:
+    """The tags every run carries about where it ran; `cpu` tells apart CPU generations that share a model
+    name (devices.cpu_identity)."""
     import torch
 
+    from gns_bench.devices import cpu_identity
+
     return {"git_sha": git_sha(), "device": device, "torch_version": torch.__version__,
-            "python_version": platform.python_version(), "hardware": hardware_description(device)}
+            "python_version": platform.python_version(), "hardware": hardware_description(device),
+            "cpu": cpu_identity()}
 
 
 # MLflow's experiment kind: "custom_model_development" is its "Machine learning" kind (runs, their metrics and

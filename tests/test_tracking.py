@@ -38,3 +38,18 @@ def test_a_reused_experiment_keeps_the_kind_it_has(client: MlflowClient) -> None
     chosen = client.create_experiment("chosen", tags={"mlflow.experimentKind": "genai_development"})
     assert tracking.experiment_id("chosen") == chosen
     assert client.get_experiment(chosen).tags["mlflow.experimentKind"] == "genai_development"
+
+
+def test_the_cpu_tag_names_the_generation_behind_a_shared_model_name(tmp_path) -> None:
+    """"AMD EPYC" names more than one generation; the `cpu` tag keeps the first processor's family, model,
+    stepping and clock, and is empty where /proc/cpuinfo is missing."""
+    from gns_bench.devices import cpu_identity
+    from gns_bench.tracking import environment_tags
+
+    info = tmp_path / "cpuinfo"
+    first = ("processor\t: 0\nmodel name\t: AMD EPYC\ncpu family\t: 26\nmodel\t\t: 2\nstepping\t: 1\n"
+             "cpu MHz\t\t: 2596.122\n")
+    info.write_text(first + "\n" + first.replace("0\n", "1\n", 1).replace("2596.122", "3000.5"))
+    assert cpu_identity(info) == "family 26, model 2, stepping 1, 2596 MHz"
+    assert cpu_identity(tmp_path / "missing") == ""
+    assert environment_tags("cpu")["cpu"] == cpu_identity()
