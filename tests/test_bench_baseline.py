@@ -79,3 +79,21 @@ def test_compiled_rollout_steps_are_timed_after_the_eager_ones_and_judged_agains
     target = rollout_target({"inference": rows})
     assert target["met"] == (fastest["step_s"] <= 0.025)
     assert target["measured"].startswith(f"{fastest['step_s'] * 1e3:.1f} ms (")
+
+
+def test_a_gpus_report_says_what_its_small_graphs_cost_from_its_own_scaling_rows() -> None:
+    """The committed H200 benchmark: the reasons paragraph adds the per-particle cost of the smallest and largest
+    2D scenes; a CPU's does not."""
+    import json
+    from pathlib import Path
+
+    from gns_bench.bench.report import why_missed
+
+    bench = Path(__file__).parents[1] / "reports/bench"
+    gpu = json.loads((bench / "cuda-nvidia-h200/bench.json").read_text())
+    rows = sorted((r for r in gpu["scaling"] if r["dim"] == 2), key=lambda r: r["particles"])
+    first = f"{rows[0]['step_s'] / rows[0]['particles'] * 1e6:.2g} µs a particle at {rows[0]['particles']:,}"
+    last = f"against {rows[-1]['step_s'] / rows[-1]['particles'] * 1e6:.2g} at {rows[-1]['particles']:,}"
+    assert first in why_missed(gpu) and last in why_missed(gpu)
+    cpu = json.loads((bench / "amd-epyc-avx512bf16/bench.json").read_text())
+    assert "µs a particle" not in why_missed(cpu)
