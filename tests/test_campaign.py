@@ -65,18 +65,23 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
     assert reports[:5] == [str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md"), *overviews,
                            str(tmp_path / "reports" / "README.md")]
     assert (tmp_path / "reports" / "domains" / "smoke" / "README.md").is_file()  # and every report at the end
+    from gns_bench.durations import format_duration
+    from gns_bench.report.collect import collect
+    from gns_bench.report.index import campaign_section
+
+    half = collect(load_sweep(campaign.sweeps[1], sweeps), "smoke", tmp_path / "reports")[0]  # domain-one's run
+    each = half.metric("train/wall_time_s") + half.metric("evaluation_seconds")
+    partway = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))[-2]
+    assert partway.startswith("| smoke | 1 of 2 |") and f"| 1 model, about {format_duration(each)} |" in partway
     again = run_campaign(campaign, "smoke", progress=False, echo=lambda line: None, sweeps_dir=sweeps, **roots)
     assert [o.status for r in again for o in r.outcomes] == ["FINISHED", "SKIPPED"]  # resumed: only what lacked
 
     # the front page states what the campaign trained and what that cost, each model once
-    from gns_bench.report.collect import collect
-    from gns_bench.report.index import campaign_section
-
     lines = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))
     rows = [r for p in campaign.sweeps for r in collect(load_sweep(p, sweeps), "smoke", tmp_path / "reports")]
     assert len(rows) == 2 and all(r.metric("evaluation_seconds") > 0 for r in rows)
     seconds = sum(r.metric("train/wall_time_s") for r in rows)
-    assert lines[-2].startswith(f"| smoke | 2 of 2 | {seconds:.0f} s | "), lines
+    assert lines[-2].startswith(f"| smoke | 2 of 2 | {seconds:.0f} s | ") and "| none |" in lines[-2], lines
 
 
 def test_a_campaign_naming_a_missing_sweep_fails_before_running(sweeps: Path) -> None:

@@ -209,11 +209,21 @@ def _training_key(run) -> str:
     return json.dumps([run.training_domain, run.dataset_tier, run.dataset_seed, config], sort_keys=True, default=str)
 
 
+def _to_go(remaining: int, training_each: float, evaluations: list[float]) -> str:
+    """The models still to train and the time they would take at the mean training and evaluation time of those
+    trained so far: an extrapolation, since later sweeps' domains and models differ (each was budgeted GOOP's
+    training time, issue #19); stress tests' own rollouts are not counted."""
+    if remaining <= 0:
+        return "none"
+    each = training_each + (sum(evaluations) / len(evaluations) if evaluations else 0.0)
+    return f"{remaining} model{'s' if remaining > 1 else ''}, about {format_duration(remaining * each)}"
+
+
 def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "paper.toml",
                      sweeps_dir: Path = SWEEPS_DIR, tiers: tuple[str, ...] = CAMPAIGN_TIERS) -> list[str]:
     """What the campaign (issue #19) has trained at each tier and what that cost: models trained against those
     planned (each trained once however many sweeps share it), training and evaluation time summed over them,
-    and the machines that ran them."""
+    what is left at the mean so far (`_to_go`), and the machines that ran them."""
     campaign = load_campaign(campaign_file, sweeps_dir)
     sweeps = [load_sweep(path, sweeps_dir) for path in campaign.sweeps]
     lines = []
@@ -229,14 +239,17 @@ def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "
                                                      if len(timed) < len(trained) else "")) if timed else "—"
         machines = "; ".join(sorted({r.tag("hardware", "?") for r in trained}))
         lines.append(f"| {tier} | {len(trained)} of {len(planned)} | {format_duration(training)} | {evaluation} | "
-                     f"{machines} |")
+                     f"{_to_go(len(planned) - len(trained), training / len(trained), timed)} | {machines} |")
     if not lines:
         return []
     return [f"## The campaign (`sweeps/campaigns/{campaign_file.name}`)", "",
             f"{campaign.description}. Models trained against those it plans (a model several sweeps share counts "
             "once), and the time they took: training as each run's `train/wall_time_s` (stalls clipped, periodic "
-            "evaluation left out), evaluation as its `evaluation_seconds` (every test rollout and metric).", "",
-            "| tier | models trained | training time | evaluation time | machines |", "|---|---|---|---|---|",
+            "evaluation left out), evaluation as its `evaluation_seconds` (every test rollout and metric). What is "
+            "left is extrapolated at the mean training and evaluation time of the models trained so far; the "
+            "stress tests' own rollouts are not counted.", "",
+            "| tier | models trained | training time | evaluation time | to go, at the mean so far | machines |",
+            "|---|---|---|---|---|---|",
             *lines, ""]
 
 
