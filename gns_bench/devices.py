@@ -31,7 +31,8 @@ def cpu_model() -> str:
 def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     """Which generation the CPU is, where its model name does not say ("AMD EPYC" names both Zen 4 and Zen 5
     parts): its family, model and stepping and its clock, from /proc/cpuinfo; "" where that file is missing.
-    Step rates of the same run differed by a third between sessions on "AMD EPYC" machines (reports/NOTES.md)."""
+    It tells generations apart, not a busier host: one run's step rate moved by a third between two sessions
+    on the same machine (reports/NOTES.md)."""
     fields: dict[str, str] = {}
     try:
         for line in open(cpuinfo, encoding="utf-8"):
