@@ -15,17 +15,28 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _first_processor(cpuinfo: str | Path = "/proc/cpuinfo") -> dict[str, str]:
+    """The fields of the first processor listed in /proc/cpuinfo ("model name", "flags", ...); {} where the file
+    is missing."""
+    fields: dict[str, str] = {}
+    try:
+        for line in open(cpuinfo, encoding="utf-8"):
+            if not line.strip():
+                if fields:
+                    break
+                continue
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        return {}
+    return fields
+
+
 def cpu_model() -> str:
     """The CPU's model name (/proc/cpuinfo), else what the platform says."""
     import platform
 
-    try:
-        for line in open("/proc/cpuinfo", encoding="utf-8"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return _first_processor().get("model name") or platform.processor() or platform.machine()
 
 
 def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
@@ -33,17 +44,7 @@ def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     parts): its family, model and stepping and its clock, from /proc/cpuinfo; "" where that file is missing.
     It tells generations apart, not a busier host: one run's step rate moved by a third between two sessions
     on the same machine (reports/NOTES.md)."""
-    fields: dict[str, str] = {}
-    try:
-        for line in open(cpuinfo, encoding="utf-8"):
-            key, _, value = line.partition(":")
-            key = key.strip()
-            if key in ("cpu family", "model", "stepping", "cpu MHz") and key not in fields:
-                fields[key] = value.strip()
-            elif not line.strip() and fields:
-                break
-    except OSError:
-        return ""
+    fields = _first_processor(cpuinfo)
     parts = [f"{name} {fields[key]}" for name, key in (("family", "cpu family"), ("model", "model"),
                                                        ("stepping", "stepping")) if key in fields]
     if "cpu MHz" in fields:
@@ -54,15 +55,8 @@ def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
 def cpu_features() -> list[str]:
     """The CPU features that decide which training settings are fastest: the bf16 matrix units (AMX on Intel,
     AVX-512 BF16 on AMD and Intel) and AVX-512 itself. A model name such as "AMD EPYC" does not tell them."""
-    wanted = ("amx_bf16", "amx_tile", "avx512_bf16", "avx512f")
-    try:
-        for line in open("/proc/cpuinfo", encoding="utf-8"):
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                return [flag for flag in wanted if flag in flags]
-    except OSError:
-        pass
-    return []
+    flags = set(_first_processor().get("flags", "").split())
+    return [flag for flag in ("amx_bf16", "amx_tile", "avx512_bf16", "avx512f") if flag in flags]
 
 
 def machine_slug(device: torch.device) -> str:
