@@ -251,15 +251,16 @@ def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], c
 
 def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None,
                     bounds: list[list[float]] | None = None) -> list:
-    """The default monitors for one trajectory, with its ground-truth kinetic energy as the reference
-    (in inflow scenes particles not yet present follow the data, in the rollout as in the reference)."""
+    """The default monitors for one trajectory, with its ground-truth kinetic energy and positions as the
+    references (in inflow scenes particles not yet present follow the data, in the rollout as in the
+    reference)."""
     w = simulator.input_sequence_length
     truth = trajectory.position[w - 1: w + (num_steps if num_steps is not None else trajectory.num_steps)]
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
     reference = metrics.kinetic_energy(truth[1:], truth[0], moving) if len(truth) > 1 else None
     window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1)
     return default_monitors(bounds if bounds is not None else simulator.bounds.tolist(), simulator.radius, window,
-                            torch.from_numpy(moving), reference)
+                            torch.from_numpy(moving), reference, truth[1:])
 
 
 def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:

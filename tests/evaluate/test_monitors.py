@@ -19,6 +19,7 @@ from gns_bench.evaluate.monitors import (
     Flag,
     MonitorTripped,
     arm,
+    close_share,
     default_monitors,
     flags,
 )
@@ -93,6 +94,30 @@ def test_density_monitor(grid: np.ndarray) -> None:
     with pytest.raises(MonitorTripped, match="density_collapse"):
         monitor(state(collapsed))
     DensityMonitor(moving, R, every=10)(state(collapsed, step=5))  # not a checking step
+
+
+def test_close_share_against_brute_force() -> None:
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(0, 0.05, size=(200, 2))
+    moving = rng.random(200) < 0.7
+    cutoff = 0.05 * R
+    gap = np.linalg.norm(cloud[:, None] - cloud[None], axis=2) + np.eye(200) * 1e9
+    assert close_share(cloud, moving, cutoff) == pytest.approx(np.mean(gap[moving].min(axis=1) < cutoff))
+    assert 0 < close_share(cloud, moving, cutoff) < 1  # the case is not trivial
+
+
+def test_density_trip_names_the_ground_truths_share(grid: np.ndarray) -> None:
+    moving = torch.ones(len(grid), dtype=torch.bool)
+    collapsed = grid.copy()
+    quarter = len(grid) // 4
+    collapsed[:quarter] = grid[quarter: 2 * quarter] + 1e-4  # a quarter onto others: half of them close
+    truth = np.stack([grid, collapsed])  # the truth collapsed at rollout step 1 only
+    monitor = DensityMonitor(moving, R, every=1, reference=truth)
+    with pytest.raises(MonitorTripped, match=r"of another \(the ground truth: 0\.0%\)"):
+        monitor(state(collapsed, step=0))
+    share = close_share(collapsed, np.ones(len(grid), dtype=bool), 0.05 * R)
+    with pytest.raises(MonitorTripped, match=rf"the ground truth: {share:.1%}".replace(".", r"\.")):
+        monitor(state(collapsed, step=1))
 
 
 def test_injected_nan_stops_the_rollout_at_that_step(tiny_dataset: Path) -> None:
