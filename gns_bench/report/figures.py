@@ -77,7 +77,7 @@ def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[fl
 
 def draw_ablation(axis: str, values: list[Any], stats: dict[str, list[tuple[float, float, int]]],
                   reference: dict[str, Any]) -> plt.Figure:
-    """One panel per metric against the axis value; error bars = std over seeds; the paper's default as a
+    """One panel per metric against the axis value; error bars = sample std over seeds; the paper's default as a
     dashed line. `stats[metric][i]` is (mean, std, seeds) for `values[i]`."""
     scale = reference.get("scale", "linear")
     numeric = scale != "category" and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)

@@ -144,7 +144,7 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
         figure = figures.ablation_figure(axis, values, stats, reference, out_dir / f"ablation_{name}.png")
         default = axis_value_label(reference["default"]) if "default" in reference else "none given"
         lines += [f"## {axis}", "", f"Paper default: {default} (dashed line); x scale: {reference['scale']}; "
-                  "error bars: std over seeds.", "", f"![{axis}]({figure.name})", ""]
+                  "error bars: sample std over seeds (n - 1).", "", f"![{axis}]({figure.name})", ""]
         if any(r.metric("rollout_stopped") > 0 for r in rows):
             lines += ["A health monitor stopped some rollouts, so rollout MSE, OT and MMD cover different steps in "
                       "different runs (column *rollout steps*). *vs constant velocity* divides the rollout MSE by "

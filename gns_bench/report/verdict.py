@@ -3,8 +3,8 @@
 The error compared is the rollout MSE divided by constant velocity's over the same steps, on a log scale:
 like for like even when health monitors stopped rollouts at different steps, and on whole rollouts simply
 the rollout MSE rescaled by one number per test set. Differences are judged against the seed spread at the
-paper's default value (the campaign trains it with several seeds): the band is twice the standard deviation
-of the log error over those seeds. A difference beyond the band counts; one inside it does not.
+paper's default value (the campaign trains it with several seeds): the band is twice the sample standard
+deviation (n - 1) of the log error over those seeds. A difference beyond the band counts; one inside it does not.
 
 - `better = [[a, b], ...]` (the paper found a better than b): *reproduced* when every pair that was run has a
   below b beyond the band, *not reproduced* when some pair has a above b beyond it, else *inconclusive (within
@@ -56,7 +56,7 @@ def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -
     default = _find(errors, reference.get("default"))
     if default is None or len(default) < 2:
         return Verdict(NO_SPREAD, "fewer than two finished seeds at the paper's default")
-    band = 2.0 * float(np.std(np.log10(default)))
+    band = 2.0 * float(np.std(np.log10(default), ddof=1))
 
     def mean_log(values: list[float]) -> float:
         return float(np.mean(np.log10(values)))

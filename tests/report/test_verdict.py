@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 from gns_bench.report.verdict import NO_SPREAD, NOT_REPRODUCED, NOT_RUN, REPRODUCED, WITHIN_SPREAD, judge
 
 STEPS = {"default": 10, "better": [[10, 1], [10, 5], [5, 1]]}
 MINOR = {"default": 2, "no_effect": True}
-DEFAULT = [1.0, 1.1, 0.9]  # std of log10 ~0.037: band x1.19 either way
+DEFAULT = [1.0, 1.1, 0.9]  # sample std of log10 0.0436: band x1.22 either way
 
 
 def test_a_clear_ordering_reproduces_the_paper() -> None:
@@ -38,3 +40,12 @@ def test_category_values_match_exactly() -> None:
     assert judge({False: DEFAULT, True: [3.0]}, sharing).verdict == REPRODUCED
     encoding = {"default": "relative", "better": [["relative", "absolute"]]}
     assert judge({"relative": DEFAULT, "absolute": [0.2]}, encoding).verdict == NOT_REPRODUCED
+
+
+def test_the_band_is_twice_the_sample_std_of_the_defaults_log_error() -> None:
+    # log10 of DEFAULT: sample std 0.0436, so the band is 10 ** 0.0872 = x1.22 (population std: x1.18)
+    assert "band: x1.2 either way" in judge({10: DEFAULT, 1: [5.0]}, STEPS).detail
+    mean = sum(math.log10(v) for v in DEFAULT) / 3
+    inside = 10 ** (mean + 0.085)  # beyond the population band (0.0712), inside the sample one (0.0872)
+    assert judge({10: DEFAULT, 1: [inside]}, STEPS).verdict == WITHIN_SPREAD
+    assert judge({10: DEFAULT, 1: [10 ** (mean + 0.09)]}, STEPS).verdict == REPRODUCED
