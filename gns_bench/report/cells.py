@@ -157,6 +157,15 @@ METRIC_DEFINITIONS = [
 ]
 
 
+SHARED_CORES = "(shared cores)"
+
+
+def shared_cores(row: RunRow) -> str:
+    """How another job competed for the cores while the run trained (its `train/oversubscribed` tag, written by
+    `train.loop.LoadWatch`); "" when it had them to itself. Such a run's training time reads high."""
+    return row.tag("train/oversubscribed") or ""
+
+
 def budget_statement(rows: list[RunRow], tier: str = "") -> str:
     """Once, at the top of a report: what the runs cost (tier, steps, precision, hardware, training time, data)
     and the plain-words reading of gaps to the paper. At the smoke tier, only that it is a pipeline check."""
@@ -202,6 +211,12 @@ def budget_statement(rows: list[RunRow], tier: str = "") -> str:
                  "(by default: a particle out of the bounds) and they ran on, as the paper's do: the rollout MSE "
                  "counts that error (MLflow tag `<split>/rollouts_flagged` says where: "
                  f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
+    shared = [r for r in done if shared_cores(r)]
+    if shared:
+        where = "; ".join(f"`{r.run_id}`: {shared_cores(r)}" for r in shared)
+        text += (f"In {len(shared)} of {len(done)} runs another job competed for the cores during training "
+                 f"(MLflow tag `train/oversubscribed`; {where}): their training times read high, marked "
+                 f"`{SHARED_CORES}` in the tables. ")
     legacy = [r for r in done if not math.isfinite(r.metric("rollout_mse_moving"))]
     if legacy:
         text += (f"{len(legacy)} of {len(done)} runs were evaluated before issue #17 "

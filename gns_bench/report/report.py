@@ -19,6 +19,7 @@ from gns_bench.report import figures
 from gns_bench.report.baselines import write_baselines_report
 from gns_bench.report.cells import (
     MISSING,
+    SHARED_CORES,
     against_cv,
     budget_statement,
     comparable_cv,
@@ -28,6 +29,7 @@ from gns_bench.report.cells import (
     ratio,
     run_id_cell,
     run_ids_cell,
+    shared_cores,
     status_cell,
     steps_covered,
     used_precision,
@@ -97,7 +99,8 @@ def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     steps = sorted({int(r.metric("train/final_step")) for r in done if math.isfinite(r.metric("train/final_step"))})
     wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
     return [ref.name if ref else sweep.domain, "/".join(f"{s:,}" for s in steps) or "—",
-            "/".join(sorted({used_precision(r) for r in done})) or "—", fmt(wall / 60),
+            "/".join(sorted({used_precision(r) for r in done})) or "—",
+            fmt(wall / 60) + (f" {SHARED_CORES}" if any(shared_cores(r) for r in done) else ""),
             "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—",
             "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})) or "—",
             status_cell(rows), run_ids_cell(rows)]

@@ -255,6 +255,30 @@ def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
     assert "health monitor" not in budget_statement([row("bbb", 0.0)])
 
 
+def test_a_run_that_shared_its_cores_is_marked_wherever_its_training_time_shows() -> None:
+    """`train/oversubscribed` (LoadWatch: another job competed while the run trained): the budget statement
+    names the run and how, and the Budget table's training time carries the mark; a clean run has neither."""
+    from gns_bench.report.cells import SHARED_CORES, budget_statement
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import budget_row
+
+    sweep = load_sweep(SWEEPS_DIR / "domains" / "goop.toml")
+    planned = sweep.plan("smoke")[0]
+    how = "load above 2.5 (2 cores) at 7 of 74 logged steps, up to 3.5"
+
+    def row(run_id: str, tags: dict[str, str]) -> RunRow:
+        metrics = {"test/rollout_mse": 1e-3, "train/wall_time_s": 600.0, "train/final_step": 20.0}
+        return RunRow(planned, tracking.RunRecord(run_id, planned.name, "FINISHED", 0, {"train.steps": "20"},
+                                                  metrics, tags))
+
+    shared, clean = row("aaa", {"train/oversubscribed": how}), row("bbb", {})
+    text = budget_statement([shared, clean])
+    assert "In 1 of 2 runs another job competed for the cores" in text and f"`aaa`: {how}" in text
+    assert "`bbb`" not in text.split("competed")[1].split(". ")[0]
+    assert budget_row(sweep, [shared, clean])[3] == f"10 {SHARED_CORES}"
+    assert "competed" not in budget_statement([clean]) and budget_row(sweep, [clean])[3] == "10"
+
+
 def test_the_baseline_printed_is_the_one_divided_by() -> None:
     """A ratio is printed beside the two numbers it divides; a stopped rollout is compared with constant
     velocity over the same steps or not at all."""
