@@ -101,9 +101,9 @@ class DensityMonitor:
     `fraction` x R (local density collapse); checked every `every` steps to stay cheap. With the ground
     truth's positions (`reference`, [K, N, D] per rollout step), a trip also says the truth's share at
     that step, so a reader sees the stop is the model's and not the data's: the solvers' own scenes peak at
-    2.0-7.5% (2D MPM) and at most 0.7% (3D, PBD) over the test splits of every cpu-tier dataset, while a WATERDROP model run on
-    past its trip reached 26% by step 100 and 75% by step 550, with 8x the truth's pairs within R
-    (reports/NOTES.md)."""
+    2.0-7.5% (2D MPM) and at most 0.7% (3D, PBD) over the test splits of every cpu-tier dataset, while a
+    WATERDROP model run on past its trip reached 26% by step 100 and 75% by step 550, with 8x the truth's
+    pairs within R (reports/NOTES.md)."""
 
     moving: torch.Tensor
     radius: float
