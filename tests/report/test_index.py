@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
-from gns_bench.report.index import write_index
+from gns_bench.report.index import domain_claim, write_index
 from gns_bench.sweep.spec import SWEEPS_DIR
 
 REPORTS = SWEEPS_DIR.parent / "reports"
@@ -24,3 +26,25 @@ def test_the_front_page_has_a_row_per_claim(tmp_path: Path) -> None:
     axes = [line for line in text.splitlines() if line.startswith(("| model.", "| train."))
             and "(gns-bench's own target)" not in line]  # not the bench's `train.precision/compile = auto` row
     assert len(axes) == 12
+
+
+def test_the_domain_row_says_how_many_ratios_cover_only_the_steps_before_a_stop(tmp_path: Path) -> None:
+    """A stopped rollout's MSE is over the steps before the stop, the paper's over whole rollouts: the front page
+    says for how many domains its ratios to the paper's are of that kind. Two committed cpu summaries, one of
+    them edited to have stopped no rollout."""
+    for domain in ("goop", "sand"):
+        source = REPORTS / f"domain-{domain}" / "cpu" / "runs.json"
+        (tmp_path / f"domain-{domain}" / "cpu").mkdir(parents=True)
+        shutil.copy(source, tmp_path / f"domain-{domain}" / "cpu" / "runs.json")
+    (row,) = domain_claim(tmp_path)
+    assert "2 of 16 domains" in row and "2 of 2 over the steps before a monitor stopped rollouts" in row
+    path = tmp_path / "domain-sand" / "cpu" / "runs.json"
+    summary = json.loads(path.read_text())
+    for run in summary["runs"]:
+        run["metrics"]["test/rollout_stopped"] = 0.0
+    path.write_text(json.dumps(summary))
+    (row,) = domain_claim(tmp_path)
+    assert "1 of 2 over the steps before a monitor stopped rollouts" in row
+    (tmp_path / "domain-goop" / "cpu" / "runs.json").unlink()
+    (row,) = domain_claim(tmp_path)
+    assert "1 of 16 domains" in row and "stopped" not in row
