@@ -25,14 +25,13 @@ from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 from gns_bench.report import figures  # noqa: E402
 from gns_bench.report.cells import (  # noqa: E402
-    SHARED_CORES,
     budget_statement,
     definitions_section,
     fmt,
     ratio,
     relative_to_cv,
     run_ids_cell,
-    shared_cores,
+    shared_cores_mark,
 )
 from gns_bench.report.collect import (  # noqa: E402
     SUMMARY_FILE,
@@ -150,7 +149,7 @@ def _cost(domain: str, model: str, rows: list[RunRow]) -> Cost | None:
                 mean([r.metric("rollout_seconds_per_step") for r in done]),
                 mean([relative_to_cv(r) for r in done]),
                 "; ".join(sorted({r.tag("hardware", "?") for r in done}))
-                + (f" {SHARED_CORES}" if any(shared_cores(r) for r in done) else ""))
+                + shared_cores_mark(done))
 
 
 def costs(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[Cost]:

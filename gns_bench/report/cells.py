@@ -54,6 +54,11 @@ def comparable_cv(row: RunRow) -> float:
     return math.nan if row.metric("rollout_stopped") > 0 else row.metric("baseline_cv_rollout_mse")
 
 
+def any_stopped(rows: list[RunRow]) -> bool:
+    """Whether a health monitor stopped some rollout of any of `rows` (NaN, for a run that did not finish, is not)."""
+    return any(r.metric("rollout_stopped") > 0 for r in rows)
+
+
 def relative_to_cv(row: RunRow) -> float:
     """A run's rollout MSE over constant velocity's on the same steps: like for like whether or not a monitor
     stopped its rollouts (a rollout stopped early has a raw rollout MSE over few steps, which reads low), so what
@@ -82,9 +87,9 @@ def against_cv(rows: list[RunRow]) -> str:
     """`cv_ratio`, saying when the steps compared end where a monitor stopped the GNS rollouts."""
     paired = _paired_with_cv(rows)
     if not paired:
-        return "GNS rollouts stopped" if any(r.metric("rollout_stopped") > 0 for r in rows) else "—"
+        return "GNS rollouts stopped" if any_stopped(rows) else "—"
     return cv_ratio(paired) + (", over the steps before the stops"
-                               if any(r.metric("rollout_stopped") > 0 for r in paired) else "")
+                               if any_stopped(paired) else "")
 
 
 def steps_covered(rows: list[RunRow]) -> str:
@@ -164,6 +169,11 @@ def shared_cores(row: RunRow) -> str:
     """How another job competed for the cores while the run trained (its `train/oversubscribed` tag, written by
     `train.loop.LoadWatch`); "" when it had them to itself. Such a run's training time reads high."""
     return row.tag("train/oversubscribed") or ""
+
+
+def shared_cores_mark(rows: list[RunRow]) -> str:
+    """` (shared cores)`, to follow a training time that any of `rows` measured with its cores shared; else ""."""
+    return f" {SHARED_CORES}" if any(shared_cores(r) for r in rows) else ""
 
 
 def budget_statement(rows: list[RunRow], tier: str = "") -> str:

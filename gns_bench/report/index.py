@@ -18,7 +18,7 @@ import numpy as np
 from gns_bench.config import ARCHITECTURE_NAMES, TIERS
 from gns_bench.durations import format_duration
 from gns_bench.report import baselines
-from gns_bench.report.cells import comparable_cv, fmt, ratio
+from gns_bench.report.cells import any_stopped, comparable_cv, fmt, ratio
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.verdict import judge
@@ -67,7 +67,7 @@ def domain_claim(reports_root: Path) -> list[str]:
         rollout = mean_std([r.metric("rollout_mse") for r in rows])[0]
         if ref and math.isfinite(rollout):
             ratios.append(rollout / ref.rollout_mse)
-            stopped += any(r.metric("rollout_stopped") > 0 for r in rows)
+            stopped += any_stopped(rows)
         against = [r.metric("rollout_mse") / comparable_cv(r) for r in rows if comparable_cv(r) > 0]
         beats += bool(against) and float(np.mean(against)) < 1
     # A stopped rollout's MSE covers the steps before the stop; the paper's covers whole rollouts.

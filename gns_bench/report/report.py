@@ -19,8 +19,8 @@ from gns_bench.report import figures
 from gns_bench.report.baselines import write_baselines_report
 from gns_bench.report.cells import (
     MISSING,
-    SHARED_CORES,
     against_cv,
+    any_stopped,
     budget_statement,
     comparable_cv,
     cv_ratio,
@@ -29,7 +29,7 @@ from gns_bench.report.cells import (
     ratio,
     run_id_cell,
     run_ids_cell,
-    shared_cores,
+    shared_cores_mark,
     status_cell,
     steps_covered,
     used_precision,
@@ -74,7 +74,7 @@ def accuracy_row(sweep: SweepSpec, rows: list[RunRow], compare: bool) -> list[st
     ref = domain_reference(sweep.domain)
     one_step = mean_std([r.metric("one_step_mse") for r in rows])[0]
     rollout, _, seeds = mean_std([r.metric("rollout_mse") for r in rows])
-    stopped = any(r.metric("rollout_stopped") > 0 for r in rows)  # NaN for runs that did not finish
+    stopped = any_stopped(rows)
     done = any(r.ok for r in rows)
     return [ref.name if ref else sweep.domain, ref.simulator if ref else "—",
             f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
@@ -100,7 +100,7 @@ def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
     return [ref.name if ref else sweep.domain, "/".join(f"{s:,}" for s in steps) or "—",
             "/".join(sorted({used_precision(r) for r in done})) or "—",
-            fmt(wall / 60) + (f" {SHARED_CORES}" if any(shared_cores(r) for r in done) else ""),
+            fmt(wall / 60) + shared_cores_mark(done),
             "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—",
             "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})) or "—",
             status_cell(rows), run_ids_cell(rows)]
@@ -148,7 +148,7 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
         default = axis_value_label(reference["default"]) if "default" in reference else "none given"
         lines += [f"## {axis}", "", f"Paper default: {default} (dashed line); x scale: {reference['scale']}; "
                   "error bars: sample std over seeds (n - 1).", "", f"![{axis}]({figure.name})", ""]
-        if any(r.metric("rollout_stopped") > 0 for r in rows):
+        if any_stopped(rows):
             lines += ["A health monitor stopped some rollouts, so rollout MSE, OT and MMD cover different steps in "
                       "different runs (column *rollout steps*). *vs constant velocity* divides the rollout MSE by "
                       "constant velocity's over the same steps: that column compares runs like for like.", ""]

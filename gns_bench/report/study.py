@@ -16,11 +16,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from gns_bench.report.cells import (  # noqa: E402
     MISSING,
-    SHARED_CORES,
     fmt,
     relative_to_cv,
     run_ids_cell,
-    shared_cores,
+    shared_cores_mark,
     steps_covered,
 )
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
@@ -88,8 +87,7 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
         rollout, rollout_std, seeds = mean_std([r.metric("rollout_mse") for r in done])
         cv = mean("baseline_cv_same_steps_mse")
         steps, seconds = mean("train/final_step"), mean("train/wall_time_s")
-        shared = f" {SHARED_CORES}" if any(shared_cores(r) for r in done) else ""
-        cells = [f"`{name}`", str(seeds) if done else MISSING, fmt(steps), fmt(seconds) + shared,
+        cells = [f"`{name}`", str(seeds) if done else MISSING, fmt(steps), fmt(seconds) + shared_cores_mark(done),
                  fmt(seconds / steps) if steps else "—", fmt(mean("one_step_mse")),
                  fmt(rollout) + (f" ± {fmt(rollout_std)}" if seeds > 1 else ""),
                  f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
