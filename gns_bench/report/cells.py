@@ -176,9 +176,22 @@ def shared_cores_mark(rows: list[RunRow]) -> str:
     return f" {SHARED_CORES}" if any(shared_cores(r) for r in rows) else ""
 
 
+def _which(runs: list[RunRow], done: list[RunRow]) -> str:
+    """"In every run (6 of 6)" or "In 2 of 6 runs", for a caveat's opening."""
+    return f"In every run ({len(runs)} of {len(done)})" if len(runs) == len(done) else \
+        f"In {len(runs)} of {len(done)} runs"
+
+
+def _named(runs: list[RunRow], done: list[RunRow]) -> str:
+    """The runs' IDs, where they are some of the runs (the report's tables give every run's ID)."""
+    return "" if len(runs) == len(done) else f": {', '.join(f'`{r.run_id}`' for r in runs)}"
+
+
 def budget_statement(rows: list[RunRow], tier: str = "") -> str:
     """Once, at the top of a report: what the runs cost (tier, steps, precision, hardware, training time, data)
-    and the plain-words reading of gaps to the paper. At the smoke tier, only that it is a pipeline check."""
+    in one sentence, then one bullet per caveat that applies (the plain-words reading of gaps to the paper,
+    rollouts cut, stopped or flagged, shared cores, older runs, our own ground truth), naming the runs a caveat
+    concerns when it concerns only some. At the smoke tier, only that it is a pipeline check."""
     if tier == "smoke":
         return SMOKE_NOTICE
     done = [r for r in rows if r.ok]
@@ -193,51 +206,53 @@ def budget_statement(rows: list[RunRow], tier: str = "") -> str:
     hardware = "; ".join(sorted({r.tag("hardware", "?") for r in done}))
     precisions = "/".join(sorted({used_precision(r) for r in done}))
     data = "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") or "?" for r in done}))
-    text = (f"**Budget{f' ({tier} tier)' if tier else ''}.** {len(done)} finished run(s): "
+    head = (f"**Budget{f' ({tier} tier)' if tier else ''}.** {len(done)} finished run(s): "
             f"{_span(trained)} training steps of batch 2 ({100 * fraction:.2g}% of the paper's {paper:,} at most), "
             f"{precisions}, {fmt(sum(wall) / 3600) if wall else '?'} h of training in all"
             f" ({fmt(min(wall) / 60) if wall else '?'}-{fmt(max(wall) / 60) if wall else '?'} min a run) on "
-            f"{hardware}; data tier {data}. ")
+            f"{hardware}; data tier {data}.")
+    caveats = []
     if fraction < 0.01:
-        text += ("That is far below the paper's budget, so gaps to its figures are expected; a number at or "
-                 "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and does "
-                 "not show that its accuracy is reproduced. ")
+        caveats.append("**Far below the paper's budget**, so gaps to its figures are expected; a number at or "
+                       "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and "
+                       "does not show that its accuracy is reproduced.")
     elif fraction < 1:
-        text += "Remaining gaps to the paper are expected from the shorter training and smaller datasets. "
+        caveats.append("Remaining gaps to the paper are expected from the shorter training and smaller datasets.")
     capped = sorted({r.param("eval.rollout_steps") for r in done} - {"", "None"}, key=float)
     if capped:
-        text += (f"Rollouts are cut at `eval.rollout_steps` = {'/'.join(capped)} steps, where the paper rolls out "
-                 "whole trajectories (K = 150 to 2000 steps): errors grow along a rollout, so these rollout MSEs "
-                 "are not comparable with the paper's (they typically sit below them). ")
+        caveats.append(f"**Rollouts cut** at `eval.rollout_steps` = {'/'.join(capped)} steps, where the paper rolls "
+                       "out whole trajectories (K = 150 to 2000 steps): errors grow along a rollout, so these "
+                       "rollout MSEs are not comparable with the paper's (they typically sit below them).")
     stopped = [r for r in done if r.metric("rollout_stopped") > 0]
     if stopped:
-        text += (f"In {len(stopped)} of {len(done)} runs a health monitor stopped some rollouts early (MLflow tag "
-                 f"`<split>/rollouts_stopped` says where and why: {', '.join(f'`{r.run_id}`' for r in stopped)}); "
-                 "their rollout MSE covers only the steps before the stop, and the constant-velocity baseline "
-                 "beside it covers the same steps. ")
+        caveats.append(f"**Stopped rollouts.** {_which(stopped, done)} a health monitor stopped some rollouts early "
+                       f"(MLflow tag `<split>/rollouts_stopped` says where and why{_named(stopped, done)}); their "
+                       "rollout MSE covers only the steps before the stop, and the constant-velocity baseline "
+                       "beside it covers the same steps.")
     flagged = [r for r in done if r.metric("rollout_flagged") > 0]
     if flagged:
-        text += (f"In {len(flagged)} of {len(done)} runs a monitor outside `eval.stop_on` flagged some rollouts "
-                 "(by default: a particle out of the bounds) and they ran on, as the paper's do: the rollout MSE "
-                 "counts that error (MLflow tag `<split>/rollouts_flagged` says where: "
-                 f"{', '.join(f'`{r.run_id}`' for r in flagged)}). ")
+        caveats.append(f"**Flagged rollouts.** {_which(flagged, done)} a monitor outside `eval.stop_on` flagged "
+                       "some rollouts (by default: a particle out of the bounds) and they ran on, as the paper's do: "
+                       "the rollout MSE counts that error (MLflow tag `<split>/rollouts_flagged` says "
+                       f"where{_named(flagged, done)}).")
     shared = [r for r in done if shared_cores(r)]
     if shared:
         where = "; ".join(f"`{r.run_id}`: {shared_cores(r)}" for r in shared)
-        text += (f"In {len(shared)} of {len(done)} runs another job competed for the cores during training "
-                 f"(MLflow tag `train/oversubscribed`; {where}): their training times read high, marked "
-                 f"`{SHARED_CORES}` in the tables. ")
+        caveats.append(f"**Shared cores.** {_which(shared, done)} another job competed for the cores during "
+                       f"training (MLflow tag `train/oversubscribed`; {where}): their training times read high, "
+                       f"marked `{SHARED_CORES}` in the tables.")
     legacy = [r for r in done if not math.isfinite(r.metric("rollout_mse_moving"))]
     if legacy:
-        text += (f"{len(legacy)} of {len(done)} runs were evaluated before issue #17 "
-                 f"({', '.join(f'`{r.run_id}`' for r in legacy)}): their MSEs leave kinematic particles out and "
-                 "their rollout MSE covers one step more (it reads higher by up to N_all / N_moving on domains with "
-                 "obstacles), and their model summed the updated edges (`model.aggregate = \"updated_edges\"`). ")
+        caveats.append(f"**Older runs.** {_which(legacy, done)} the evaluation predates issue #17"
+                       f"{_named(legacy, done)}. Their MSEs leave kinematic particles out "
+                       "and their rollout MSE covers one step more (it reads higher by up to N_all / N_moving on "
+                       "domains with obstacles), and their model summed the updated edges "
+                       "(`model.aggregate = \"updated_edges\"`).")
     if any(r.tag("dataset_tier") for r in done):  # set by gns-bench's generators; imported datasets have none
-        text += ("The ground truth comes from gns-bench's own solvers (`datasets/<domain>.toml`), in the paper's "
-                 "format and units but not its trajectories: the paper's numbers are a reference on like scenes, "
-                 "not on the same test set. ")
-    return text.rstrip()
+        caveats.append("**Our own ground truth.** The ground truth comes from gns-bench's own solvers "
+                       "(`datasets/<domain>.toml`), in the paper's format and units but not its trajectories: the "
+                       "paper's numbers are a reference on like scenes, not on the same test set.")
+    return "\n".join([head, "", *(f"- {c}" for c in caveats)]) if caveats else head
 
 
 def _span(values: list[int]) -> str:

@@ -102,7 +102,7 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
     rollout = run.metrics["test/rollout_mse"]
     assert accuracy_row(sweep, rows, compare=True)[10] == f"{rollout / cv:.3g}x ({rollout:.3g} / {cv:.3g})"
     statement = budget_statement(rows, "small")
-    assert "far below the paper's budget" in statement and "20,000,000" in statement
+    assert "**Far below the paper's budget**" in statement and "20,000,000" in statement
     assert "The ground truth comes from gns-bench's own solvers" in statement  # the tiny dataset is made here
     assert "`eval.rollout_steps` = 10 steps" in statement
     check_figures(readme, {"time_vs_error.png", "rollout_best.png", "rollout_best.gif", "rollout_worst.png",
@@ -253,6 +253,10 @@ def test_budget_statement_flags_rollouts_stopped_by_monitors() -> None:
     text = budget_statement([row("aaa", 0.5), row("bbb", 0.0)])
     assert "In 1 of 2 runs a health monitor stopped some rollouts early" in text and "`aaa`" in text
     assert "health monitor" not in budget_statement([row("bbb", 0.0)])
+    # every run stopped: said so, without a list of IDs that the report's tables already give
+    every = budget_statement([row("aaa", 0.5), row("ccc", 1.0)])
+    assert "In every run (2 of 2) a health monitor stopped" in every and "`aaa`" not in every
+    assert every.startswith("**Budget.**") and "\n- **Stopped rollouts.**" in every  # a caveat a bullet
 
 
 def test_a_run_that_shared_its_cores_is_marked_wherever_its_training_time_shows() -> None:
