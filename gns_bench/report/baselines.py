@@ -32,6 +32,7 @@ from gns_bench.report.cells import (  # noqa: E402
     relative_to_cv,
     run_ids_cell,
     shared_cores_mark,
+    times,
 )
 from gns_bench.report.collect import (  # noqa: E402
     SUMMARY_FILE,
@@ -116,7 +117,7 @@ def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow],
     return [f"{ref.name if ref else sweep.domain} ({architecture})", fmt(gns),
             fmt(ours) + (f" (`{best.planned.name}`)" if best else ""),
             f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare_runs and best and gns > 0 else "—",
-            f"{fmt(like.gns)}x / {fmt(like.baseline)}x" if compare_runs else "—",
+            f"{times(like.gns)} / {times(like.baseline)}" if compare_runs else "—",
             f"{fmt(like.gns_steps)} / {fmt(like.baseline_steps)}" if compare_runs else "—",
             like.verdict if compare_runs else "—",
             fmt(ref.rollout_mse) if ref else "—", fmt(paper_cconv) if paper_cconv else "—",

@@ -18,6 +18,11 @@ def fmt(value: float) -> str:
     return "—" if value is None or not math.isfinite(value) else f"{value:.3g}"
 
 
+def times(value: float) -> str:
+    """A ratio already divided: "0.436x", or "—" when missing."""
+    return fmt(value) if fmt(value) == "—" else f"{fmt(value)}x"
+
+
 def ratio(ours: float, paper: float | None) -> str:
     if paper is None or not math.isfinite(ours) or paper == 0:
         return "—"

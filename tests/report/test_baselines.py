@@ -48,6 +48,8 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert compared[3] == f"{ratio:.3g}x ({best.metric('rollout_mse'):.3g} / {gns:.3g})"
     like = (baselines.relative_to_cv(gns_rows[0]), baselines.relative_to_cv(best))
     assert compared[4] == f"{like[0]:.3g}x / {like[1]:.3g}x"
+    missing = baselines.comparison_row(baseline, [], gns_rows, compare_runs=True)  # the baseline not run yet
+    assert missing[4] == f"{like[0]:.3g}x / —" and missing[2] == "—"
     assert compared[6] == baselines.compare(gns_rows, best).verdict != "—"
     assert "## Verdicts" not in text  # smoke: no verdict drawn
     # cost beside error: the GNS and the baseline's best run, each at its own measured step times
