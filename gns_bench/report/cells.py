@@ -182,9 +182,10 @@ def shared_cores_mark(rows: list[RunRow]) -> str:
 
 
 def _which(runs: list[RunRow], done: list[RunRow]) -> str:
-    """"In every run (6 of 6)" or "In 2 of 6 runs", for a caveat's opening."""
-    return f"In every run ({len(runs)} of {len(done)})" if len(runs) == len(done) else \
-        f"In {len(runs)} of {len(done)} runs"
+    """A caveat's opening: 'In every run (6 of 6)' or 'In 2 of 6 runs'."""
+    if len(runs) == len(done):
+        return f"In every run ({len(runs)} of {len(done)})"
+    return f"In {len(runs)} of {len(done)} runs"
 
 
 def _named(runs: list[RunRow], done: list[RunRow]) -> str:
