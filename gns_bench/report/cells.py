@@ -223,7 +223,8 @@ def budget_statement(rows: list[RunRow], tier: str = "") -> str:
                        "below the paper's is on our own, smaller test set (like scenes, not its trajectories) and "
                        "does not show that its accuracy is reproduced.")
     elif fraction < 1:
-        caveats.append("Remaining gaps to the paper are expected from the shorter training and smaller datasets.")
+        caveats.append("**Below the paper's budget**: remaining gaps to the paper are expected from the shorter "
+                       "training and smaller datasets.")
     capped = sorted({r.param("eval.rollout_steps") for r in done} - {"", "None"}, key=float)
     if capped:
         caveats.append(f"**Rollouts cut** at `eval.rollout_steps` = {'/'.join(capped)} steps, where the paper rolls "
