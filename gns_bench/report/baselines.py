@@ -211,7 +211,7 @@ def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], 
              "| domain | model | training s/step | training time (s) | rollout s/step | against constant velocity, "
              "same steps | hardware |", "|---|---|---|---|---|---|---|"]
     lines += [f"| {c.domain} | {c.model} | {fmt(c.train_seconds_per_step)} | {fmt(c.train_seconds)} | "
-              f"{fmt(c.rollout_seconds_per_step)} | {fmt(c.against_cv)}x | {c.hardware} |" for c in rows]
+              f"{fmt(c.rollout_seconds_per_step)} | {times(c.against_cv)} | {c.hardware} |" for c in rows]
     figure = cost_figure(rows, out_dir / "cost_vs_error.png")
     if figure is not None:
         lines += ["", f"![cost against error]({figure.name})"]

@@ -18,7 +18,7 @@ import numpy as np
 from gns_bench.config import ARCHITECTURE_NAMES, TIERS
 from gns_bench.durations import format_duration
 from gns_bench.report import baselines
-from gns_bench.report.cells import any_stopped, comparable_cv, fmt, ratio
+from gns_bench.report.cells import any_stopped, comparable_cv, fmt, ratio, times
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.verdict import judge
@@ -119,7 +119,7 @@ def generalisation_claims(reports_root: Path) -> list[str]:
         row = done[0]
         horizon = row.metric("stress/horizon/stable_factor")
         against = row.metric("rollout_mse") / comparable_cv(row) if comparable_cv(row) > 0 else math.nan
-        ours = (f"test rollout MSE {fmt(row.metric('rollout_mse'))} ({fmt(against)}x constant velocity)"
+        ours = (f"test rollout MSE {fmt(row.metric('rollout_mse'))} ({times(against)} constant velocity)"
                 + (f"; stable for {fmt(horizon)}x the training length" if math.isfinite(horizon) else ""))
         lines.append(f"| {claim} | {tier} | {ours} | qualitative (videos) | see the report | "
                      f"{_link('stability', tier)} |")
@@ -154,8 +154,8 @@ def baseline_claims(reports_root: Path) -> list[str]:
                    "no": f"{architecture} better" + (": not reproduced" if paper_baseline else ""),
                    "mixed": "mixed (lower error and longer rollouts split)", "—": "—"}[like.verdict]
         lines.append(f"| {claim} | {tier} | {architecture} / GNS = {ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)}); "
-                     f"against constant velocity, same steps: GNS {fmt(like.gns)}x, {architecture} "
-                     f"{fmt(like.baseline)}x | {paper} | {verdict} | {_link(sweep.name, tier)} |")
+                     f"against constant velocity, same steps: GNS {times(like.gns)}, {architecture} "
+                     f"{times(like.baseline)} | {paper} | {verdict} | {_link(sweep.name, tier)} |")
     return lines
 
 

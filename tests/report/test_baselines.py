@@ -3,6 +3,8 @@ two numbers it divides."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import shutil
 from pathlib import Path
 
@@ -62,6 +64,11 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert (tmp_path / "reports" / "baselines" / "smoke" / "cost_vs_error.png").is_file()
     lines = baselines.verdict_lines([(baseline, rows, gns_rows)])
     assert lines[-2].startswith(f"- tiny, GNS against CConv: **{compared[6]}**")
+    unpaired = dataclasses.replace(costs["CConv"], against_cv=math.nan)  # no constant velocity over its steps
+    monkeypatch.setattr(baselines, "costs", lambda collected: [unpaired])
+    section = baselines.cost_section([], tmp_path / "unpaired")
+    (cost_row,) = [line for line in section if line.startswith("| tiny | CConv |")]
+    assert "| — |" in cost_row and "—x" not in cost_row
 
 
 @pytest.mark.parametrize(("gns", "baseline", "gns_steps", "baseline_steps", "verdict"), [
