@@ -1,12 +1,12 @@
 """A campaign: sweeps run in priority order by one resumable command, then every report written.
 
 `sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they should fill in
-(`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped,
-interrupted ones resumed from their checkpoints, runs another sweep trained recorded as shared), writes that
-sweep's report as soon as it is done so results land while the rest runs, with the pages that read every sweep
-(domain table, stability, baselines, front page: `write_overviews`), and ends by writing every report. A
-sweep that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command
-resumes it.
+(`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped, those
+the committed run summaries under `reports_root` hold included; interrupted ones resumed from their
+checkpoints; runs another sweep trained recorded as shared), writes that sweep's report as soon as it is done
+so results land while the rest runs, with the pages that read every sweep (domain table, stability,
+baselines, front page: `write_overviews`), and ends by writing every report. A sweep that fails is reported
+and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ class SweepResult:
 
 
 def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print, *,
-                  timed: bool = False) -> None:
+                  timed: bool = False, reports_root: Path | None = Path("reports")) -> None:
     """Print each sweep's runs and their status, generating nothing. `timed`: with each run's step rate
     measured here, its training and evaluation time, and the campaign's total still to run, a point two sweeps
     share counted once (`sweep/timing.py`)."""
@@ -40,12 +40,13 @@ def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable
         counted: set[str] = set()
         total = Total()
         for path in campaign.sweeps:
-            total.add(timed_plan(load_sweep(path), tier, data_root, measured=measured, counted=counted, echo=echo))
+            total.add(timed_plan(load_sweep(path), tier, data_root, measured=measured, counted=counted, echo=echo,
+                                 reports_root=reports_root))
         echo(f"campaign {campaign.name} ({tier}): " + total_line(total))
         return
     for path in campaign.sweeps:
         sweep = load_sweep(path)
-        runs, status, _ = prepare(sweep, tier, data_root, generate=False)
+        runs, status, _ = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root)
         echo(format_plan(sweep, tier, runs, status))
 
 
@@ -62,7 +63,8 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
         echo(f"== campaign {campaign.name} ({tier}), sweep {index}/{len(campaign.sweeps)}: {sweep.name}")
         try:
             outcomes = run_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, launcher=launcher,
-                                 cluster=cluster, progress=progress, parallel=parallel, echo=echo)
+                                 cluster=cluster, progress=progress, parallel=parallel, reports_root=reports_root,
+                                 echo=echo)
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # noqa: BLE001 - one sweep's failure (a dataset that would not generate) is reported

@@ -213,6 +213,9 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                         "what it lacks as usual (add --no-train to train nothing)")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or made")
     p.add_argument("--runs-root", type=Path, default=Path("runs"), help="where run directories go")
+    p.add_argument("--reports-root", type=Path, default=Path("reports"),
+                   help="where the committed run summaries (<sweep>/<tier>/runs.json) are read: a run one holds is "
+                        "finished even when this MLflow store lacks it")
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
@@ -223,16 +226,18 @@ def cmd_sweep(args: argparse.Namespace) -> None:
     if args.time:
         from gns_bench.sweep.timing import timed_plan
 
-        timed_plan(sweep, args.tier, args.data_root, share=not args.no_share, only=args.only)
+        timed_plan(sweep, args.tier, args.data_root, share=not args.no_share, only=args.only,
+                   reports_root=args.reports_root)
         return
     if args.dry_run:
         runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share,
-                                  only=args.only)
+                                  only=args.only, reports_root=args.reports_root)
         print(format_plan(sweep, args.tier, runs, status))
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                          launcher=args.launcher, cluster=args.cluster, share=not args.no_share, only=args.only,
-                         train=not args.no_train, reevaluate_reason=args.reevaluate, parallel=args.parallel)
+                         train=not args.no_train, reevaluate_reason=args.reevaluate, parallel=args.parallel,
+                         reports_root=args.reports_root)
     counts = {s: sum(o.status == s for o in outcomes)
               for s in ("FINISHED", "REEVALUATED", "SKIPPED", "SHARED", "FAILED")}
     print(f"sweep {sweep.name}: {counts['FINISHED']} finished, "
@@ -275,7 +280,7 @@ def cmd_campaign(args: argparse.Namespace) -> None:
 
     campaign = load_campaign(args.file)
     if args.dry_run or args.time:
-        plan_campaign(campaign, args.tier, args.data_root, timed=args.time)
+        plan_campaign(campaign, args.tier, args.data_root, timed=args.time, reports_root=args.reports_root)
         return
     results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                            reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster,

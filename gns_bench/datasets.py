@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from gns_bench.data.tiny import RADIUS as TINY_RADIUS
 from gns_bench.data.tiny import TINY, generate_tiny
 from gns_bench.physics import spec
 from gns_bench.physics.generate import generate_dataset, stale_generator_version
@@ -29,6 +30,13 @@ def check_domain(domain: str) -> None:
     domains, variants = list_domains(), list_variants()
     if domain not in domains and domain not in variants:
         raise spec.UnknownDomainError(domain, domains, variants)
+
+
+def default_connectivity_radius(domain: str) -> float:
+    """The connectivity radius R its datasets carry in metadata (`default_connectivity_radius`), read from its
+    spec without a dataset at hand."""
+    check_domain(domain)
+    return TINY_RADIUS if domain == TINY else spec.load_domain_spec(domain).connectivity_radius
 
 
 def dataset_path(domain: str, tier: str, seed: int = 0, data_root: str | Path = "data") -> Path:

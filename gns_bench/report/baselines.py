@@ -35,16 +35,15 @@ from gns_bench.report.cells import (  # noqa: E402
     times,
 )
 from gns_bench.report.collect import (  # noqa: E402
-    SUMMARY_FILE,
     RunRow,
     collect,
     domain_sweeps,
     load_rollouts,
     mean_std,
-    read_summary_extras,
 )
 from gns_bench.report.reference import domain_reference  # noqa: E402
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
+from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras  # noqa: E402
 
 HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
           "same steps: GNS / baseline | rollout steps covered: GNS / baseline | GNS better here? | GNS (paper) "

@@ -7,8 +7,6 @@ silently dropping them.
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +17,7 @@ import numpy as np
 from gns_bench import tracking
 from gns_bench.evaluate.result import RolloutResult
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep
+from gns_bench.sweep.summaries import read_run_summary, summary_path
 
 METRICS = ("one_step_mse", "rollout_mse", "ot", "mmd", "kinetic_energy_error", "rollout_seconds_per_step")
 
@@ -90,7 +89,6 @@ def domain_sweeps() -> list[SweepSpec]:
     return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "domain"]
 
 
-SUMMARY_FILE = "runs.json"  # beside each report: its runs, enough to rebuild its tables without MLflow
 CURVE_PREFIX = "curve/"  # metrics logged along training (train.eval_every), kept with their history
 
 
@@ -100,7 +98,7 @@ def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> li
     failure shows), else none (missing). So a report is rebuilt from its summary when the MLflow store that
     made it is gone, and runs finished since take their place."""
     records = tracking.search_sweep_runs(sweep.experiment, tier)
-    saved = read_run_summary(reports_root / sweep.name / tier / SUMMARY_FILE) if reports_root else {}
+    saved = read_run_summary(summary_path(reports_root, sweep.name, tier)) if reports_root else {}
     rows = []
     for planned in sweep.plan(tier):
         named = [r for r in records if r.name == planned.name]  # newest first
@@ -111,40 +109,6 @@ def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> li
                              if key.startswith(CURVE_PREFIX)}
         rows.append(RunRow(planned, record))
     return rows
-
-
-def write_run_summary(path: Path, sweep: SweepSpec, tier: str, rows: list[RunRow],
-                      extras: dict[str, Any] | None = None) -> Path:
-    """The rows' runs as JSON (params, final metrics, tags with hardware and timing, curves), sorted by run,
-    and `extras`: what else the report showed that MLflow's artifacts held (e.g. which rollouts it drew)."""
-    runs = [dataclasses.asdict(r.record) for r in sorted(rows, key=lambda r: r.planned.name) if r.record]
-    payload = {"sweep": sweep.name, "tier": tier, "note": "written by gns-bench report; read back by it when "
-               "MLflow no longer holds these runs", "runs": runs, "extras": extras or {}}
-    path.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
-    return path
-
-
-def read_summary_extras(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        return {}
-    try:
-        return dict(json.loads(path.read_text()).get("extras", {}))
-    except ValueError:
-        return {}
-
-
-def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
-    """A committed run summary by run name; empty when there is none."""
-    if not path.is_file():
-        return {}
-    try:
-        runs = json.loads(path.read_text())["runs"]
-        records = [tracking.RunRecord(**{**run, "curves": {k: [tuple(p) for p in v]
-                                                           for k, v in run.get("curves", {}).items()}})
-                   for run in runs]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: not a gns-bench run summary ({type(exc).__name__}: {exc})") from None
-    return {record.name: record for record in records}
 
 
 def mean_std(values: list[float]) -> tuple[float, float, int]:

@@ -36,16 +36,13 @@ from gns_bench.report.cells import (
 )
 from gns_bench.report.collect import (
     METRICS,
-    SUMMARY_FILE,
     RunRow,
     axis_value_label,
     collect,
     domain_sweeps,
     load_rollouts,
     mean_std,
-    read_summary_extras,
     resolve_sweep,
-    write_run_summary,
 )
 from gns_bench.report.index import write_index
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
@@ -53,6 +50,7 @@ from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
 from gns_bench.report.verdict import judge
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
+from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary
 
 # ----------------------------------------------------------------------------------------------
 # Domain table (Table 1, App. C.4)
@@ -379,7 +377,7 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
     rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir / SUMMARY_FILE))
     lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir), *rollouts]
     extras |= {"rollouts": picks} if picks else {}
-    write_run_summary(out_dir / SUMMARY_FILE, sweep, tier, rows, extras or None)
+    write_run_summary(out_dir / SUMMARY_FILE, sweep.name, tier, [r.record for r in rows if r.record], extras or None)
     return _write(out_dir, lines)
 
 

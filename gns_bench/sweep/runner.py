@@ -9,6 +9,14 @@ whose model another sweep trained (the same config but for [stress]) stress-test
 instead of training it again. A run that fails is
 recorded FAILED with its error and the sweep goes on; Ctrl-C marks the run in flight KILLED and stops the
 sweep, and the next invocation resumes it from its checkpoint.
+
+The committed run summaries (`reports/<sweep>/<tier>/runs.json`, `sweep/summaries.py`) count as well, so a
+campaign resumed on a machine whose MLflow store is gone does not train again what the repository reports: a
+run whose key a summary of its sweep holds is finished, one whose key a summary of another sweep holds is
+shared from that record (params and metrics; its artifacts are gone), and a run its sweep's summary holds is
+known finished without generating its datasets again when the key recomputed from the datasets that summary
+names (their content hashes) is the summary's key. A stress run whose model only a summary holds trains it
+again: its checkpoint is not there to test.
 """
 
 from __future__ import annotations
@@ -25,9 +33,10 @@ from pathlib import Path
 from gns_bench import tracking
 from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
-from gns_bench.datasets import dataset_path, ensure_dataset
+from gns_bench.datasets import dataset_path, default_connectivity_radius, ensure_dataset
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
+from gns_bench.sweep.summaries import RESTORED_FROM, summarised_runs
 
 
 @dataclass
@@ -72,6 +81,18 @@ def dataset_run_key(run: PlannedRun, data_root: Path) -> str:
     return run_key(config, run.domain, metadata.content_hash or "", evaluated)
 
 
+def summary_key(run: PlannedRun, record: tracking.RunRecord) -> str | None:
+    """The key `run` has on the datasets that `record` (a run summary's) trained and was evaluated on, by their
+    content hashes in its tags: the record's own `run_key` exactly when it is this run on those datasets, so it
+    is known finished with no dataset at hand. None when the record names no dataset hash."""
+    dataset_hash = record.tags.get("dataset_hash")
+    evaluated = record.tags.get("eval_dataset_hash") if run.evaluated_elsewhere else None
+    if not dataset_hash or (run.evaluated_elsewhere and not evaluated):
+        return None
+    config = resolve_for_dataset(run.config, default_connectivity_radius(run.training_domain))
+    return run_key(config, run.domain, dataset_hash, evaluated)
+
+
 def training_data(run: PlannedRun, data_root: Path) -> Path:
     return dataset_path(run.training_domain, run.dataset_tier, run.dataset_seed, data_root)
 
@@ -90,13 +111,15 @@ def finished_keys(experiment: str) -> dict[str, tracking.RunRecord]:
     return finished
 
 
-def trained_keys(domain: str) -> dict[str, tracking.RunRecord]:
+def trained_keys(domain: str, summarised: list[tracking.RunRecord] = ()) -> dict[str, tracking.RunRecord]:
     """run_key -> the newest FINISHED sweep run of any experiment that trained it (copies excluded), among
-    the runs on `domain` (the key holds the domain, so no other run can match)."""
+    the runs on `domain` (the key holds the domain, so no other run can match); then, for keys MLflow lacks,
+    the `summarised` records (`summaries.summarised_runs`) that trained one."""
     runs = tracking.search_runs("attributes.status = 'FINISHED' and tags.kind = 'sweep' and "
                                 f"params.`sweep.domain` = '{domain}'")
     trained: dict[str, tracking.RunRecord] = {}
-    for record in runs:  # newest first
+    for record in [*runs, *(r for r in summarised if r.params.get("sweep.domain") == domain
+                             and r.tags.get("kind") == "sweep")]:  # newest first, MLflow's before the summaries'
         if "run_key" in record.tags and "shared_from" not in record.tags:
             trained.setdefault(record.tags["run_key"], record)
     return trained
@@ -232,22 +255,35 @@ def select_runs(sweep: SweepSpec, runs: list[PlannedRun], only: Sequence[str]) -
     return chosen
 
 
+FINISHED = "finished"
+SUMMARISED = "finished (committed summary)"  # a run the MLflow store lacks and its sweep's runs.json holds
+
+
 def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = True, progress: bool = True,
-            share: bool = True, only: Sequence[str] = ()
+            share: bool = True, only: Sequence[str] = (), reports_root: Path | None = None
             ) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
     """Plan the runs (those matching `only`, if given) and ensure their datasets. Returns the runs, each
-    run's status before running ("finished", "to run", "shared with <sweep>/<run>", "dataset missing"),
-    and the shared ones' (key, trained run) by run name: those another sweep trained with the same key
-    (none when `share` is off)."""
+    run's status before running (FINISHED, SUMMARISED, "to run", "shared with <sweep>/<run>", "dataset
+    missing"), and the shared ones' (key, trained run) by run name: those another sweep trained with the same
+    key (none when `share` is off). `reports_root`: where the committed run summaries are read (none: MLflow's
+    runs only)."""
     runs = select_runs(sweep, sweep.plan(tier), only)
-    done = finished_keys(sweep.experiment)
+    summarised = summarised_runs(reports_root) if reports_root is not None else []
+    saved = {r.name: r for r in summarised if r.tags.get("sweep") == sweep.name and r.tags.get("tier") == tier}
+    done = {r.tags["run_key"]: r for r in saved.values() if "run_key" in r.tags} | finished_keys(sweep.experiment)
     trained: dict[str, tracking.RunRecord] = {}
     for domain in {r.domain for r in runs} if share else ():
-        trained.update(trained_keys(domain))
+        trained.update(trained_keys(domain, summarised))
     status: dict[str, str] = {}
     shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
         datasets = dict.fromkeys([(run.training_domain, run.dataset_tier), (run.domain, run.evaluated_on)])
+        have_data = all((dataset_path(domain, t, run.dataset_seed, data_root) / "metadata.json").exists()
+                        for domain, t in datasets)
+        record = saved.get(run.name)
+        if not have_data and record is not None and summary_key(run, record) == record.tags.get("run_key"):
+            status[run.name] = SUMMARISED  # its datasets are not made again only to say so
+            continue
         if generate:  # the training data, then the evaluation's
             for domain, dataset_tier in datasets:
                 ensure_dataset(domain, dataset_tier, run.dataset_seed, data_root, progress=progress)
@@ -257,13 +293,14 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             continue
         key = dataset_run_key(run, data_root)
         if key in done:
-            status[run.name] = "finished"
+            status[run.name] = FINISHED if RESTORED_FROM not in done[key].tags else SUMMARISED
         elif key in trained:
             source = trained[key]
             status[run.name] = f"shared with {source.tags.get('sweep', '?')}/{source.name}"
             shared[run.name] = (key, source)
-        elif (unstressed := unstressed_key(run, data_root)) in trained:  # another sweep trained this model:
-            source = trained[unstressed]  # stress-test its checkpoint
+        elif ((unstressed := unstressed_key(run, data_root)) in trained  # another sweep trained this model
+              and RESTORED_FROM not in trained[unstressed].tags):  # and its checkpoint is here:
+            source = trained[unstressed]  # stress-test it
             status[run.name] = f"{STRESSED} {source.tags.get('sweep', '?')}/{source.name}"
             shared[run.name] = (key, source)
         else:
@@ -303,7 +340,8 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
               launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
               only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
-              parallel: int = 1, echo: Callable[[str], None] = print) -> list[RunOutcome]:
+              parallel: int = 1, reports_root: Path | None = None,
+              echo: Callable[[str], None] = print) -> list[RunOutcome]:
     """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
@@ -313,20 +351,23 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
     if parallel > 1 and launcher != "local":
         raise ValueError(f"parallel = {parallel} is for the local launcher; {launcher} sets its own parallelism")
-    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only)
+    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only,
+                                   reports_root=reports_root)
     again: list[RunOutcome] = []
     if reevaluate_reason is not None:
-        finished = [r for r in runs if status[r.name] == "finished"]
+        finished = [r for r in runs if status[r.name] == FINISHED]  # a summary's run has no checkpoint here
         echo(f"sweep {sweep.name} (tier {tier}): evaluating {len(finished)} finished runs again")
         again = reevaluate(sweep, finished, data_root, runs_root, reason=reevaluate_reason, progress=progress,
                            echo=echo)
     pending = [r for r in runs if status[r.name] == "to run"]
     done_again = {o.name for o in again}
     outcomes = again + [RunOutcome(r.name, "SKIPPED") for r in runs
-                        if status[r.name] == "finished" and r.name not in done_again]
+                        if status[r.name] in (FINISHED, SUMMARISED) and r.name not in done_again]
     selected = f" (--only {' '.join(only)})" if only else ""
-    echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished, "
-         f"{len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
+    summarised = sum(status[r.name] == SUMMARISED for r in runs)
+    echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished"
+         + (f" ({summarised} known only from the committed run summary)" if summarised else "")
+         + f", {len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
     if not train:
         pending = []
     for run in runs:
@@ -336,7 +377,8 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
             outcomes.append(stress_trained_run(run, key, source, data_root, runs_root, progress))
         elif run.name in shared:
             key, source = shared[run.name]
-            echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), recorded without training")
+            where = f", from {source.tags[RESTORED_FROM]}" if RESTORED_FROM in source.tags else ""
+            echo(f"  {run.name}: {status[run.name]} (run {source.run_id}{where}), recorded without training")
             outcomes.append(share_run(run, key, source))
     if launcher == "local" and parallel > 1:
         from gns_bench.sweep.launchers import run_parallel

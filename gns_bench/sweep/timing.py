@@ -154,11 +154,13 @@ def total_line(total: Total) -> str:
 
 def timed_plan(sweep: SweepSpec, tier: str, data_root: Path, *, steps: int = 40, share: bool = True,
                only: tuple[str, ...] | list[str] = (), measured: dict[str, object] | None = None,
-               counted: set[str] | None = None, echo: Callable[[str], None] = print) -> Total:
+               counted: set[str] | None = None, echo: Callable[[str], None] = print,
+               reports_root: Path | None = None) -> Total:
     """Print the sweep's plan with each run's measured rate, training and evaluation time (generating nothing),
     then the total still to run; returns that total. `measured`, `counted`: shared across a campaign's
-    sweeps."""
-    runs, status, _ = prepare(sweep, tier, data_root, generate=False, share=share, only=only)
+    sweeps. `reports_root`: where the committed run summaries are (`runner.prepare`)."""
+    runs, status, _ = prepare(sweep, tier, data_root, generate=False, share=share, only=only,
+                              reports_root=reports_root)
     costs = time_runs(runs, status, data_root, steps=steps, measured=measured, echo=echo)
     echo(format_plan(sweep, tier, runs, status, timing_columns(runs, costs)))
     total = time_to_run(runs, status, costs, data_root, set() if counted is None else counted)

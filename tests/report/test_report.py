@@ -339,8 +339,9 @@ def test_a_run_drawn_in_another_report_is_linked_not_drawn_again(tmp_path: Path)
     that run (a shared copy, or the run copies were made from) links them, whichever report drew them."""
     import json
 
-    from gns_bench.report.collect import SUMMARY_FILE, RunRow
+    from gns_bench.report.collect import RunRow
     from gns_bench.report.report import _shared_pictures
+    from gns_bench.sweep.summaries import SUMMARY_FILE
 
     drew = tmp_path / "domain-goop" / "cpu"
     drew.mkdir(parents=True)

@@ -646,3 +646,59 @@ def test_every_cpu_gns_run_follows_the_budget_studys_winner() -> None:
             assert run.config.eval.precision == "bf16", (sweep.name, run.name)  # rollouts as the runs train
             checked += 1
     assert checked > 40
+
+
+def test_a_store_that_is_gone_leaves_the_committed_summaries_in_charge(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue #19.5: a campaign resumed on a new machine, its MLflow store and datasets gone, must not train
+    again what the committed run summaries report: their runs are finished (without making their data again),
+    shared with the sweeps that plan the same run, and only a stress test, whose checkpoint is gone, trains."""
+    from gns_bench.report import write_report
+    from gns_bench.sweep.runner import SUMMARISED
+    from gns_bench.sweep.summaries import RESTORED_FROM, summary_path
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'first.db'}")
+    root = tmp_path / "sweeps"
+    for folder in ("domains", "ablations", "stress"):
+        (root / folder).mkdir(parents=True)
+    shutil.copy(SWEEPS_DIR / "tiers.toml", root / "tiers.toml")
+    model = "[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 6\n"
+    (root / "domains" / "tiny.toml").write_text(f'description = "the model"\ndomain = "tiny"\n\n{model}')
+    (root / "ablations" / "tiny.toml").write_text(f'description = "the same run"\ndomain = "tiny"\n\n{model}')
+    (root / "stress" / "tiny.toml").write_text(
+        f'description = "its stress tests"\ndomain = "tiny"\n\n[config.stress]\ntests = ["precision"]\n'
+        f'precisions = ["fp32"]\nmax_trajectories = 1\nrollout_steps = 4\n\n{model}')
+    domain, copy, stress = (load_sweep(root / folder / "tiny.toml", root) for folder in ("domains", "ablations",
+                                                                                          "stress"))
+    reports = tmp_path / "reports"
+    quiet = dict(runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
+    [trained] = run_sweep(domain, "smoke", data_root=tmp_path / "data", **quiet)
+    write_report(root / "domains" / "tiny.toml", "smoke", reports)
+    assert summary_path(reports, "domain-tiny", "smoke").is_file()
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'new.db'}")  # a new machine: nothing kept
+    data = tmp_path / "new-data"
+    [planned] = domain.plan("smoke")
+    _, status, _ = prepare(domain, "smoke", data, generate=False)
+    assert status == {planned.name: "dataset missing"}  # what the runner knew before summaries counted
+    _, status, _ = prepare(domain, "smoke", data, generate=False, reports_root=reports)
+    assert status == {planned.name: SUMMARISED}
+    assert [o.status for o in run_sweep(domain, "smoke", data_root=data, reports_root=reports, **quiet)] == ["SKIPPED"]
+    assert not data.exists()  # known finished without generating its dataset again
+
+    [shared] = run_sweep(copy, "smoke", data_root=data, reports_root=reports, **quiet)
+    assert shared.status == "SHARED" and shared.metrics["test/rollout_mse"] == trained.metrics["rollout_mse"]
+    record = tracking.get_run(shared.run_id)
+    assert record.tags["shared_from"] == trained.run_id
+    assert record.tags[RESTORED_FROM] == str(summary_path(reports, "domain-tiny", "smoke"))
+
+    _, status, _ = prepare(stress, "smoke", data, progress=False, reports_root=reports)
+    assert list(status.values()) == ["to run"]  # no checkpoint to stress-test: it trains the model itself
+
+    (root / "domains" / "tiny.toml").write_text(f'description = "the model"\ndomain = "tiny"\n\n'
+                                                f'{model.replace("latent_size = 8", "latent_size = 9")}')
+    changed = load_sweep(root / "domains" / "tiny.toml", root)
+    _, status, _ = prepare(changed, "smoke", data, generate=False, reports_root=reports)
+    assert list(status.values()) == ["to run"]  # the summary's run is another run now
+    _, status, _ = prepare(changed, "smoke", tmp_path / "no-data", generate=False, reports_root=reports)
+    assert list(status.values()) == ["dataset missing"]  # and is not taken for it without data either
