@@ -28,6 +28,7 @@ from gns_bench.report.cells import (  # noqa: E402
     budget_statement,
     definitions_section,
     fmt,
+    machines,
     ratio,
     relative_to_cv,
     run_ids_cell,
@@ -148,7 +149,7 @@ def _cost(domain: str, model: str, rows: list[RunRow]) -> Cost | None:
                 mean([r.metric("train/wall_time_s") for r in done]),
                 mean([r.metric("rollout_seconds_per_step") for r in done]),
                 mean([relative_to_cv(r) for r in done]),
-                "; ".join(sorted({r.tag("hardware", "?") for r in done}))
+                machines(done)
                 + shared_cores_mark(done))
 
 

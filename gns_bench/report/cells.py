@@ -7,6 +7,7 @@ three significant digits, gaps as "—", and a row with no finished run as MISSI
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 from gns_bench.report.collect import RunRow, mean_std
 from gns_bench.report.reference import paper_training_steps
@@ -122,7 +123,7 @@ def budget(rows: list[RunRow]) -> str:
         return "—"
     steps = sorted({int(float(r.param("train.steps", "0"))) for r in done})
     wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
-    hardware = sorted({r.tag("hardware", "?") for r in done})
+    hardware = sorted({machine(r) for r in done})
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier", "?") for r in done})
     horizon = mean_std([r.metric("rollout_steps") for r in done])[0]
     models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
@@ -170,6 +171,42 @@ METRIC_DEFINITIONS = [
 SHARED_CORES = "(shared cores)"
 
 
+def cpu_generation(row: RunRow) -> str:
+    """The CPU family and model a run recorded (`devices.cpu_identity`), e.g. "family 25, model 17"; "" for a GPU
+    run or one from before the tag."""
+    identity = dict(part.split(" ", 1) for part in row.tag("cpu").split(", ") if " " in part)
+    if row.tag("device", "cpu") != "cpu" or not {"family", "model"} <= identity.keys():
+        return ""
+    return f"family {identity['family']}, model {identity['model']}"
+
+
+def machine(row: RunRow) -> str:
+    """What a run ran on: its `hardware` tag (model name and threads, or the GPU), with the CPU's family and model
+    where it recorded them. "AMD EPYC" names more than one generation, and the campaign's runs came from two
+    whose step rates differ (reports/NOTES.md)."""
+    generation = cpu_generation(row)
+    return row.tag("hardware", "?") + (f" (CPU {generation})" if generation else "")
+
+
+def machines(rows: list[RunRow]) -> str:
+    """Every machine the rows ran on, "; "-separated ("" for none): each `hardware` once, with the CPU
+    generations its runs recorded, counted where there are several."""
+    by_hardware: dict[str, Counter[str]] = {}
+    for row in rows:
+        by_hardware.setdefault(row.tag("hardware", "?"), Counter())[cpu_generation(row)] += 1
+    cells = []
+    for hardware, generations in sorted(by_hardware.items()):
+        if set(generations) == {""}:
+            cells.append(hardware)
+        elif len(generations) == 1:
+            cells.append(f"{hardware} (CPU {next(iter(generations))})")
+        else:
+            counts = "; ".join(f"{generation or 'not recorded'}: {n} run{'s' * (n > 1)}"
+                               for generation, n in sorted(generations.items(), key=lambda g: (not g[0], g[0])))
+            cells.append(f"{hardware} (CPU {counts})")
+    return "; ".join(cells)
+
+
 def shared_cores(row: RunRow) -> str:
     """How another job competed for the cores while the run trained (its `train/oversubscribed` tag, written by
     `train.loop.LoadWatch`); "" when it had them to itself. Such a run's training time reads high."""
@@ -209,7 +246,7 @@ def budget_statement(rows: list[RunRow], tier: str = "") -> str:
     trained = final or [steps]
     fraction = max(trained) / paper
     wall = [r.metric("train/wall_time_s") for r in done if math.isfinite(r.metric("train/wall_time_s"))]
-    hardware = "; ".join(sorted({r.tag("hardware", "?") for r in done}))
+    hardware = machines(done)
     precisions = "/".join(sorted({used_precision(r) for r in done}))
     data = "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") or "?" for r in done}))
     head = (f"**Budget{f' ({tier} tier)' if tier else ''}.** {len(done)} finished run(s): "

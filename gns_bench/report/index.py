@@ -18,7 +18,7 @@ import numpy as np
 from gns_bench.config import ARCHITECTURE_NAMES, TIERS
 from gns_bench.durations import format_duration
 from gns_bench.report import baselines
-from gns_bench.report.cells import any_stopped, comparable_cv, fmt, ratio, times
+from gns_bench.report.cells import any_stopped, comparable_cv, fmt, machines, ratio, times
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.verdict import judge
@@ -161,7 +161,7 @@ def baseline_claims(reports_root: Path) -> list[str]:
 
 def inference_claim(reports_root: Path) -> list[str]:
     """App. C.6: our rollout time per step against the paper's V100 range for 2D MPM domains."""
-    seconds, hardware, tier_seen = [], set(), set()
+    seconds, timed_rows, tier_seen = [], [], set()
     for sweep in domain_sweeps():
         ref = domain_reference(sweep.domain)
         if not ref or ref.dim != 2:
@@ -170,11 +170,11 @@ def inference_claim(reports_root: Path) -> list[str]:
         for r in rows:
             if r.ok and math.isfinite(r.metric("rollout_seconds_per_step")):
                 seconds.append(r.metric("rollout_seconds_per_step"))
-                hardware.add(r.tag("hardware", "?"))
+                timed_rows.append(r)
                 tier_seen.add(tier)
     paper = inference_reference(2, "MPM (2D)")
     paper_cell = f"{paper['gns_seconds'][0]:g}-{paper['gns_seconds'][1]:g} s/step on a V100" if paper else "—"
-    ours = (f"{fmt(min(seconds))}-{fmt(max(seconds))} s/step on {'; '.join(sorted(hardware))}" if seconds
+    ours = (f"{fmt(min(seconds))}-{fmt(max(seconds))} s/step on {machines(timed_rows)}" if seconds
             else "no result yet")
     tiers = sorted(tier_seen, key=RESULT_TIERS.index)
     return [f"| Rollout time per step, 2D domains (App. C.6) | {'/'.join(tiers) or '—'} | {ours} | {paper_cell} | "
@@ -241,9 +241,9 @@ def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "
         timed = [r.metric("evaluation_seconds") for r in trained if math.isfinite(r.metric("evaluation_seconds"))]
         evaluation = (format_duration(sum(timed)) + (f" ({len(timed)} of {len(trained)} runs logged it)"
                                                      if len(timed) < len(trained) else "")) if timed else "—"
-        machines = "; ".join(sorted({r.tag("hardware", "?") for r in trained}))
+        ran_on = machines(trained)
         lines.append(f"| {tier} | {len(trained)} of {len(planned)} | {format_duration(training)} | {evaluation} | "
-                     f"{_to_go(len(planned) - len(trained), training / len(trained), timed)} | {machines} |")
+                     f"{_to_go(len(planned) - len(trained), training / len(trained), timed)} | {ran_on} |")
     if not lines:
         return []
     return [f"## The campaign (`sweeps/campaigns/{campaign_file.name}`)", "",

@@ -26,6 +26,7 @@ from gns_bench.report.cells import (
     cv_ratio,
     definitions_section,
     fmt,
+    machines,
     ratio,
     run_id_cell,
     run_ids_cell,
@@ -99,7 +100,7 @@ def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     return [ref.name if ref else sweep.domain, "/".join(f"{s:,}" for s in steps) or "—",
             "/".join(sorted({used_precision(r) for r in done})) or "—",
             fmt(wall / 60) + shared_cores_mark(done),
-            "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—",
+            machines(done) or "—",
             "/".join(sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier") for r in done})) or "—",
             status_cell(rows), run_ids_cell(rows)]
 
@@ -121,7 +122,7 @@ def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[s
         ref = domain_reference(sweep.domain)
         paper = inference_reference(ref.dim, ref.simulator) if ref else None
         ours = mean_std([r.metric("rollout_seconds_per_step") for r in rows])[0]
-        hardware = "; ".join(sorted({r.tag("hardware", "?") for r in rows if r.ok})) or "—"
+        hardware = machines([r for r in rows if r.ok]) or "—"
         ours_cell = fmt(ours) if any(r.ok for r in rows) else MISSING
         gns, solver = ((f"{paper[k][0]:g}-{paper[k][1]:g}" for k in ("gns_seconds", "solver_seconds")) if paper
                        else ("—", "—"))

@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from gns_bench.report.cells import (  # noqa: E402
     MISSING,
     fmt,
+    machines,
     relative_to_cv,
     run_ids_cell,
     shared_cores_mark,
@@ -93,7 +94,7 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
                  f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
                  f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
                  steps_covered(done) if done else "—",
-                 "; ".join(sorted({r.tag("hardware", "?") for r in done})) or "—", run_ids_cell(group)]
+                 machines(done) or "—", run_ids_cell(group)]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

@@ -111,7 +111,7 @@ def finished_keys(experiment: str) -> dict[str, tracking.RunRecord]:
     return finished
 
 
-def trained_keys(domain: str, summarised: list[tracking.RunRecord] = ()) -> dict[str, tracking.RunRecord]:
+def trained_keys(domain: str, summarised: Sequence[tracking.RunRecord] = ()) -> dict[str, tracking.RunRecord]:
     """run_key -> the newest FINISHED sweep run of any experiment that trained it (copies excluded), among
     the runs on `domain` (the key holds the domain, so no other run can match); then, for keys MLflow lacks,
     the `summarised` records (`summaries.summarised_runs`) that trained one."""

@@ -283,6 +283,34 @@ def test_a_run_that_shared_its_cores_is_marked_wherever_its_training_time_shows(
     assert "competed" not in budget_statement([clean]) and budget_row(sweep, [clean])[3] == "10"
 
 
+def test_runs_on_two_generations_of_one_cpu_model_name_are_told_apart() -> None:
+    """"AMD EPYC" named two CPU generations in the campaign (families 26 and 25) whose step rates differ: the
+    budget table and statement give the family and model a run recorded, and a GPU run is named by its GPU."""
+    from gns_bench.report.cells import budget_statement, machines
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import budget_row
+
+    sweep = load_sweep(SWEEPS_DIR / "domains" / "goop.toml")
+    planned = sweep.plan("smoke")[0]
+
+    def row(run_id: str, tags: dict[str, str]) -> RunRow:
+        metrics = {"test/rollout_mse": 1e-3, "train/wall_time_s": 600.0, "train/final_step": 20.0}
+        return RunRow(planned, tracking.RunRecord(run_id, planned.name, "FINISHED", 0, {"train.steps": "20"},
+                                                  metrics, {"hardware": "AMD EPYC, 2 threads", **tags}))
+
+    zen5 = row("a", {"device": "cpu", "cpu": "family 26, model 2, stepping 1, 2596 MHz"})
+    zen4 = row("b", {"device": "cpu", "cpu": "family 25, model 17, stepping 1, 2596 MHz"})
+    untagged = row("c", {})  # runs from before the `cpu` tag
+    gpu = row("d", {"device": "cuda", "hardware": "NVIDIA H200", "cpu": "family 25, model 17"})
+    assert machines([zen4]) == "AMD EPYC, 2 threads (CPU family 25, model 17)"
+    assert machines([zen5, zen4, zen5, untagged, gpu]) == (
+        "AMD EPYC, 2 threads (CPU family 25, model 17: 1 run; family 26, model 2: 2 runs; not recorded: 1 run); "
+        "NVIDIA H200")
+    assert machines([untagged]) == "AMD EPYC, 2 threads" and machines([gpu]) == "NVIDIA H200"
+    assert budget_row(sweep, [zen4])[4] == "AMD EPYC, 2 threads (CPU family 25, model 17)"
+    assert "(CPU family 25, model 17: 1 run; family 26, model 2: 1 run)" in budget_statement([zen5, zen4])
+
+
 def test_the_baseline_printed_is_the_one_divided_by() -> None:
     """A ratio is printed beside the two numbers it divides; a stopped rollout is compared with constant
     velocity over the same steps or not at all."""
