@@ -123,7 +123,7 @@ def budget(rows: list[RunRow]) -> str:
         return "—"
     steps = sorted({int(float(r.param("train.steps", "0"))) for r in done})
     wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
-    hardware = sorted({machine(r) for r in done})
+    hardware = machines(done)
     tiers = sorted({r.tag("dataset_tier") or r.param("sweep.dataset_tier", "?") for r in done})
     horizon = mean_std([r.metric("rollout_steps") for r in done])[0]
     models = sorted({f"M={r.param('model.message_passing_steps', '?')}, latent {r.param('model.latent_size', '?')}"
@@ -138,7 +138,7 @@ def budget(rows: list[RunRow]) -> str:
     if final_rates:
         models = [f"{m}, final learning rate {'/'.join(final_rates)}" for m in models]
     return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
-            f"{'; '.join(hardware)}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
+            f"{hardware}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
 
 
 SMOKE_NOTICE = ("**Smoke tier: a pipeline check, not a result.** Tiny models trained for a few steps on tiny "
@@ -180,17 +180,11 @@ def cpu_generation(row: RunRow) -> str:
     return f"family {identity['family']}, model {identity['model']}"
 
 
-def machine(row: RunRow) -> str:
-    """What a run ran on: its `hardware` tag (model name and threads, or the GPU), with the CPU's family and model
-    where it recorded them. "AMD EPYC" names more than one generation, and the campaign's runs came from two
-    whose step rates differ (reports/NOTES.md)."""
-    generation = cpu_generation(row)
-    return row.tag("hardware", "?") + (f" (CPU {generation})" if generation else "")
-
-
 def machines(rows: list[RunRow]) -> str:
-    """Every machine the rows ran on, "; "-separated ("" for none): each `hardware` once, with the CPU
-    generations its runs recorded, counted where there are several."""
+    """Every machine the rows ran on, "; "-separated ("" for none): each `hardware` tag (model name and threads,
+    or the GPU) once, with the CPU generations its runs recorded, counted where there are several. "AMD EPYC"
+    names more than one generation, and the campaign's runs came from two whose step rates differ
+    (reports/NOTES.md)."""
     by_hardware: dict[str, Counter[str]] = {}
     for row in rows:
         by_hardware.setdefault(row.tag("hardware", "?"), Counter())[cpu_generation(row)] += 1
