@@ -25,7 +25,7 @@ import dataclasses
 import fnmatch
 import hashlib
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -278,17 +278,15 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     shared: dict[str, tuple[str, tracking.RunRecord]] = {}
     for run in runs:
         datasets = dict.fromkeys([(run.training_domain, run.dataset_tier), (run.domain, run.evaluated_on)])
-        have_data = all((dataset_path(domain, t, run.dataset_seed, data_root) / "metadata.json").exists()
-                        for domain, t in datasets)
         record = saved.get(run.name)
-        if not have_data and record is not None and summary_key(run, record) == record.tags.get("run_key"):
+        if (not _datasets_made(datasets, run.dataset_seed, data_root) and record is not None
+                and summary_key(run, record) == record.tags.get("run_key")):
             status[run.name] = SUMMARISED  # its datasets are not made again only to say so
             continue
         if generate:  # the training data, then the evaluation's
             for domain, dataset_tier in datasets:
                 ensure_dataset(domain, dataset_tier, run.dataset_seed, data_root, progress=progress)
-        if not all((dataset_path(domain, t, run.dataset_seed, data_root) / "metadata.json").exists()
-                   for domain, t in datasets):
+        if not _datasets_made(datasets, run.dataset_seed, data_root):
             status[run.name] = "dataset missing"
             continue
         key = dataset_run_key(run, data_root)
@@ -306,6 +304,11 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
         else:
             status[run.name] = "to run"
     return runs, status, shared
+
+
+def _datasets_made(datasets: Iterable[tuple[str, str]], seed: int, data_root: Path) -> bool:
+    """Whether every (domain, tier) dataset is complete under `data_root` (its metadata is written last)."""
+    return all((dataset_path(domain, tier, seed, data_root) / "metadata.json").exists() for domain, tier in datasets)
 
 
 STRESSED = "stress tests of"  # the status of a stress run whose model another sweep trained
