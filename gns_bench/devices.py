@@ -45,11 +45,21 @@ def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     It tells generations apart, not a busier host: one run's step rate moved by a third between two sessions
     on the same machine (reports/NOTES.md)."""
     fields = _first_processor(cpuinfo)
-    parts = [f"{name} {fields[key]}" for name, key in (("family", "cpu family"), ("model", "model"),
-                                                       ("stepping", "stepping")) if key in fields]
+    generation = cpu_generation(cpuinfo)
+    parts = [generation] if generation else []
+    if "stepping" in fields:
+        parts.append(f"stepping {fields['stepping']}")
     if "cpu MHz" in fields:
         parts.append(f"{float(fields['cpu MHz']):.0f} MHz")
     return ", ".join(parts)
+
+
+def cpu_generation(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """The CPU's family and model ("family 25, model 17"): what tells two generations sold under one model name
+    apart, without the stepping and clock that `cpu_identity` adds; "" where /proc/cpuinfo is missing."""
+    fields = _first_processor(cpuinfo)
+    return ", ".join(f"{name} {fields[key]}" for name, key in (("family", "cpu family"), ("model", "model"))
+                     if key in fields)
 
 
 def cpu_features() -> list[str]:
@@ -75,12 +85,15 @@ def machine_slug(device: torch.device) -> str:
 
 
 def machine_key(device: torch.device) -> str:
-    """What a speed measurement holds for: the GPU, or the CPU model, its relevant features and the thread
-    count; with torch's version."""
+    """What a speed measurement holds for: the GPU, or the CPU model, its generation, its relevant features and
+    the thread count; with torch's version. The generation matters: two "AMD EPYC" machines with the same
+    features, CPU families 25 and 26, trained the same model at 1.56 and 3.13 steps/s (reports/NOTES.md)."""
     if device.type == "cuda":
         name = torch.cuda.get_device_name(device)
     else:
-        name = f"{cpu_model()} [{' '.join(cpu_features())}] x{torch.get_num_threads()}"
+        generation = cpu_generation()
+        name = (f"{cpu_model()}{f' ({generation})' if generation else ''} [{' '.join(cpu_features())}] "
+                f"x{torch.get_num_threads()}")
     return f"{name}; torch {torch.__version__}"
 
 

@@ -53,3 +53,23 @@ def test_the_cpu_tag_names_the_generation_behind_a_shared_model_name(tmp_path) -
     assert cpu_identity(info) == "family 26, model 2, stepping 1, 2596 MHz"
     assert cpu_identity(tmp_path / "missing") == ""
     assert environment_tags("cpu")["cpu"] == cpu_identity()
+
+
+def test_speed_settings_are_cached_per_cpu_generation(tmp_path, monkeypatch) -> None:
+    """Two CPUs that share a model name and features but not a generation (family 25 and 26 "AMD EPYC" ran the
+    same training at half and full speed) get different autotune cache keys."""
+    import torch
+
+    from gns_bench import devices
+
+    read = devices._first_processor
+    keys = []
+    for family in ("25", "26"):
+        info = tmp_path / f"cpuinfo-{family}"
+        info.write_text(f"processor\t: 0\nmodel name\t: AMD EPYC\ncpu family\t: {family}\nmodel\t\t: 17\n"
+                        "flags\t\t: avx512f avx512_bf16\n")
+        monkeypatch.setattr(devices, "_first_processor", lambda cpuinfo=None, path=info: read(path))
+        assert devices.cpu_generation() == f"family {family}, model 17"
+        keys.append(devices.machine_key(torch.device("cpu")))
+    assert keys[0] != keys[1]
+    assert keys[0].startswith("AMD EPYC (family 25, model 17) [avx512_bf16 avx512f]")
