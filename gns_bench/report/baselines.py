@@ -7,7 +7,6 @@ goop blowing apart)."""
 
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 from dataclasses import dataclass
@@ -44,7 +43,7 @@ from gns_bench.report.collect import (  # noqa: E402
 )
 from gns_bench.report.reference import domain_reference  # noqa: E402
 from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
-from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras  # noqa: E402
+from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
 HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
           "same steps: GNS / baseline | rollout steps covered: GNS / baseline | GNS better here? | GNS (paper) "
@@ -343,10 +342,9 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir)]
     failures, drawn = failure_section(collected, out_dir, read_summary_extras(out_dir / SUMMARY_FILE).get("failures"))
     lines += failures
-    (out_dir / SUMMARY_FILE).write_text(json.dumps(
-        {"note": "written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow no longer "
-                 "holds the runs (their numbers are in each baseline sweep's own summary)",
-         "runs": [], "extras": {"failures": drawn} if drawn else {}}, indent=1, sort_keys=True) + "\n")
+    write_run_summary(out_dir / SUMMARY_FILE, "baselines", tier, [], {"failures": drawn} if drawn else {},
+                      note="written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow "
+                           "no longer holds the runs (their numbers are in each baseline sweep's own summary)")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

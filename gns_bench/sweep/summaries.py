@@ -25,12 +25,15 @@ def summary_path(reports_root: Path, sweep: str, tier: str) -> Path:
     return Path(reports_root) / sweep / tier / SUMMARY_FILE
 
 
+DEFAULT_NOTE = "written by gns-bench report; read back by it when MLflow no longer holds these runs"
+
+
 def write_run_summary(path: Path, sweep: str, tier: str, records: Iterable[tracking.RunRecord],
-                      extras: dict[str, Any] | None = None) -> Path:
-    """The runs as JSON (sorted by run name), and `extras` (e.g. which rollouts the report drew)."""
+                      extras: dict[str, Any] | None = None, note: str = DEFAULT_NOTE) -> Path:
+    """The runs as JSON (sorted by run name), `extras` (e.g. which rollouts the report drew) and a `note` on
+    what wrote the file."""
     runs = [dataclasses.asdict(r) for r in sorted(records, key=lambda r: r.name)]
-    payload = {"sweep": sweep, "tier": tier, "note": "written by gns-bench report; read back by it when "
-               "MLflow no longer holds these runs", "runs": runs, "extras": extras or {}}
+    payload = {"sweep": sweep, "tier": tier, "note": note, "runs": runs, "extras": extras or {}}
     path.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
     return path
 
