@@ -48,3 +48,25 @@ def test_the_domain_row_says_how_many_ratios_cover_only_the_steps_before_a_stop(
     (tmp_path / "domain-goop" / "cpu" / "runs.json").unlink()
     (row,) = domain_claim(tmp_path)
     assert "1 of 16 domains" in row and "stopped" not in row
+
+
+def test_what_is_left_is_extrapolated_per_cpu_generation_where_runs_came_from_several() -> None:
+    """Runs that came from two CPU generations sold under one name ("AMD EPYC", families 25 and 26) give the
+    overall extrapolation and each generation's own; one generation gives only the overall one."""
+    from gns_bench import tracking
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.index import _to_go
+    from gns_bench.sweep.spec import load_sweep
+
+    planned = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("smoke")[0]
+
+    def row(family: str, minutes: float) -> RunRow:
+        metrics = {"train/wall_time_s": 60.0 * minutes, "evaluation_seconds": 0.0}
+        tags = {"device": "cpu", "cpu": f"family {family}, model 17, stepping 1, 2596 MHz"}
+        return RunRow(planned, tracking.RunRecord("r", planned.name, "FINISHED", 0, {}, metrics, tags))
+
+    runs = [row("26", 30.0), row("26", 30.0), row("25", 60.0), row("25", 60.0)]
+    assert _to_go(4, runs) == ("4 models, about 3.0 h (at the mean of CPU family 25, model 17's 2 runs: 4.0 h; "
+                               "CPU family 26, model 17's 2 runs: 2.0 h)")
+    assert _to_go(4, runs[:2]) == "4 models, about 2.0 h"
+    assert _to_go(0, runs) == "none"
