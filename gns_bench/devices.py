@@ -87,7 +87,8 @@ def machine_slug(device: torch.device) -> str:
 def machine_key(device: torch.device) -> str:
     """What a speed measurement holds for: the GPU, or the CPU model, its generation, its relevant features and
     the thread count; with torch's version. The generation matters: two "AMD EPYC" machines with the same
-    features, CPU families 25 and 26, trained the same model at 1.56 and 3.13 steps/s (reports/NOTES.md)."""
+    features differ in speed (CONTINUOUS trained at 1.56 steps/s on CPU family 25, where its probe on family 26
+    had measured 3.13; reports/NOTES.md)."""
     if device.type == "cuda":
         name = torch.cuda.get_device_name(device)
     else:

@@ -56,8 +56,8 @@ def test_the_cpu_tag_names_the_generation_behind_a_shared_model_name(tmp_path) -
 
 
 def test_speed_settings_are_cached_per_cpu_generation(tmp_path, monkeypatch) -> None:
-    """Two CPUs that share a model name and features but not a generation (family 25 and 26 "AMD EPYC" ran the
-    same training at half and full speed) get different autotune cache keys."""
+    """Two CPUs that share a model name and features but not a generation ("AMD EPYC" of families 25 and 26,
+    which differ in speed) get different autotune cache keys."""
     import torch
 
     from gns_bench import devices

@@ -217,8 +217,8 @@ def _to_go(remaining: int, trained: list[RunRow]) -> str:
     """The models still to train and the time they would take at the mean training and evaluation time of those
     trained so far: an extrapolation, since later sweeps' domains and models differ (each was budgeted GOOP's
     training time, issue #19); stress tests' own rollouts are not counted. Where the runs recorded more than
-    one CPU generation, also at each generation's own mean: the same model trained about half as fast on
-    family 25 as on family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs."""
+    one CPU generation, also at each generation's own mean: runs took about twice as long on family 25 as on
+    family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs."""
     if remaining <= 0:
         return "none"
 

@@ -7,10 +7,9 @@ nothing is hard-coded: a short probe times a few training steps of each candidat
 the run, on a copy of the model (the run's own weights and optimiser are untouched), and picks the fastest.
 `torch.compile` is chosen only when its saving over the run's steps pays for its compile time.
 
-The choice is cached per machine (GPU, or CPU model, family and model number, its bf16 features and thread
-count; torch's version),
-model shape and graph size, in `$GNS_BENCH_CACHE` (default `~/.cache/gns-bench/autotune.json`), so a machine
-probes once per kind of run. The run records what it used (the checkpoint keeps it, so a resumed run trains
+The choice is cached per machine (GPU, or CPU model with its family and model number, bf16 features and
+thread count; torch's version), model shape and graph size, in `$GNS_BENCH_CACHE` (default
+`~/.cache/gns-bench/autotune.json`), so a machine probes once per kind of run. The run records what it used (the checkpoint keeps it, so a resumed run trains
 on with the same settings) and the timings behind it.
 """
 
