@@ -9,8 +9,8 @@ the run, on a copy of the model (the run's own weights and optimiser are untouch
 
 The choice is cached per machine (GPU, or CPU model with its family and model number, bf16 features and
 thread count; torch's version), model shape and graph size, in `$GNS_BENCH_CACHE` (default
-`~/.cache/gns-bench/autotune.json`), so a machine probes once per kind of run. The run records what it used (the checkpoint keeps it, so a resumed run trains
-on with the same settings) and the timings behind it.
+`~/.cache/gns-bench/autotune.json`), so a machine probes once per kind of run. The run records what it used
+(the checkpoint keeps it, so a resumed run trains on with the same settings) and the timings behind it.
 """
 
 from __future__ import annotations
