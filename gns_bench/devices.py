@@ -45,7 +45,7 @@ def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     It tells generations apart, not a busier host: one run's step rate moved by a third between two sessions
     on the same machine (reports/NOTES.md)."""
     fields = _first_processor(cpuinfo)
-    generation = cpu_generation(cpuinfo)
+    generation = _generation(fields)
     parts = [generation] if generation else []
     if "stepping" in fields:
         parts.append(f"stepping {fields['stepping']}")
@@ -57,7 +57,10 @@ def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
 def cpu_generation(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     """The CPU's family and model ("family 25, model 17"): what tells two generations sold under one model name
     apart, without the stepping and clock that `cpu_identity` adds; "" where /proc/cpuinfo is missing."""
-    fields = _first_processor(cpuinfo)
+    return _generation(_first_processor(cpuinfo))
+
+
+def _generation(fields: dict[str, str]) -> str:
     return ", ".join(f"{name} {fields[key]}" for name, key in (("family", "cpu family"), ("model", "model"))
                      if key in fields)
 

@@ -232,8 +232,8 @@ def _to_go(remaining: int, trained: list[RunRow]) -> str:
     text = f"{remaining} model{'s' if remaining > 1 else ''}, about {estimate(trained)}"
     by_generation: dict[str, list[RunRow]] = {}
     for row in trained:
-        if cpu_generation(row):
-            by_generation.setdefault(cpu_generation(row), []).append(row)
+        if generation := cpu_generation(row):
+            by_generation.setdefault(generation, []).append(row)
     if len(by_generation) > 1:
         text += " (at the mean of " + "; ".join(
             f"CPU {generation}'s {len(rows)} run{'s' * (len(rows) > 1)}: {estimate(rows)}"
