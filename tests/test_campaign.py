@@ -73,8 +73,15 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
     each = half.metric("train/wall_time_s") + half.metric("evaluation_seconds")
     partway = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))[-2]
     assert partway.startswith("| smoke | 1 of 2 |") and f"| 1 model, about {format_duration(each)} |" in partway
-    again = run_campaign(campaign, "smoke", progress=False, echo=lambda line: None, sweeps_dir=sweeps, **roots)
+    said.clear()
+    again = run_campaign(campaign, "smoke", progress=False, echo=said.append, sweeps_dir=sweeps, **roots)
     assert [o.status for r in again for o in r.outcomes] == ["FINISHED", "SKIPPED"]  # resumed: only what lacked
+    # the sweep that ran has its report written when done and again at the end; the one that ran nothing new
+    # is written only in the final rewrite
+    reports = [line.split("report: ")[1] for line in said if line.startswith("  report: ")]
+    assert reports.count(str(tmp_path / "reports" / "domain-two" / "smoke" / "README.md")) == 2, reports
+    assert reports.count(str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md")) == 1, reports
+    assert "  reports: unchanged, nothing new in domain-one" in said
 
     # the front page states what the campaign trained and what that cost, each model once
     lines = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))

@@ -171,7 +171,7 @@ METRIC_DEFINITIONS = [
 SHARED_CORES = "(shared cores)"
 
 
-def cpu_generation(row: RunRow) -> str:
+def run_cpu_generation(row: RunRow) -> str:
     """The CPU family and model a run recorded (`devices.cpu_identity`), e.g. "family 25, model 17"; "" for a GPU
     run or one from before the tag."""
     identity = dict(part.split(" ", 1) for part in row.tag("cpu").split(", ") if " " in part)
@@ -187,7 +187,7 @@ def machines(rows: list[RunRow]) -> str:
     (reports/NOTES.md)."""
     by_hardware: dict[str, Counter[str]] = {}
     for row in rows:
-        by_hardware.setdefault(row.tag("hardware", "?"), Counter())[cpu_generation(row)] += 1
+        by_hardware.setdefault(row.tag("hardware", "?"), Counter())[run_cpu_generation(row)] += 1
     cells = []
     for hardware, generations in sorted(by_hardware.items()):
         if set(generations) == {""}:

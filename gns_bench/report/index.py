@@ -18,7 +18,7 @@ import numpy as np
 from gns_bench.config import ARCHITECTURE_NAMES, TIERS
 from gns_bench.durations import format_duration
 from gns_bench.report import baselines
-from gns_bench.report.cells import any_stopped, comparable_cv, cpu_generation, fmt, machines, ratio, times
+from gns_bench.report.cells import any_stopped, comparable_cv, fmt, machines, ratio, run_cpu_generation, times
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.verdict import judge
@@ -232,7 +232,7 @@ def _to_go(remaining: int, trained: list[RunRow]) -> str:
     text = f"{remaining} model{'s' if remaining > 1 else ''}, about {estimate(trained)}"
     by_generation: dict[str, list[RunRow]] = {}
     for row in trained:
-        if generation := cpu_generation(row):
+        if generation := run_cpu_generation(row):
             by_generation.setdefault(generation, []).append(row)
     if len(by_generation) > 1:
         text += " (at the mean of " + "; ".join(
