@@ -4,9 +4,10 @@
 (`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped, those
 the committed run summaries under `reports_root` hold included; interrupted ones resumed from their
 checkpoints; runs another sweep trained recorded as shared), writes that sweep's report as soon as it is done
-(unless it ran nothing new) so results land while the rest runs, with the pages that read every sweep (domain
-table, stability, baselines, front page: `write_overviews`), and ends by writing every report. A sweep that
-fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
+(unless it ran nothing new and its run summary holds every run) so results land while the rest runs, with the
+pages that read every sweep (domain table, stability, baselines, front page: `write_overviews`), and ends by
+writing every report. A sweep that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and
+the same command resumes it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from gns_bench.report import write_all_reports, write_overviews, write_report
 from gns_bench.sweep.campaigns import Campaign
 from gns_bench.sweep.runner import RunOutcome, format_plan, prepare, run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, load_sweep
+from gns_bench.sweep.summaries import read_run_summary, summary_path
 
 
 @dataclass
@@ -72,10 +74,13 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
             results.append(SweepResult(sweep.name, [], f"{type(exc).__name__}: {exc}"))
             continue
         results.append(SweepResult(sweep.name, outcomes))
-        if all(outcome.status == "SKIPPED" for outcome in outcomes):
-            # nothing ran or was recorded: its report and the overviews stand as written, and the final rewrite
-            # below covers them. Rewriting them took about 20 s a sweep (MLflow reads, PNGs): a resumed campaign
-            # spent 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC, CPU family 25, model 17).
+        held = read_run_summary(summary_path(reports_root, sweep.name, tier))
+        if all(outcome.status == "SKIPPED" and outcome.name in held for outcome in outcomes):
+            # nothing ran or was recorded, and its report's run summary holds every run (a run that finished
+            # before an interrupted report still gets one): the report and the overviews stand as written, and
+            # the final rewrite below covers them. Rewriting them took about 20 s a sweep (MLflow reads, PNGs):
+            # a resumed campaign spent 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC, CPU family
+            # 25, model 17).
             echo(f"  reports: unchanged, nothing new in {sweep.name}")
             continue
         for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:
