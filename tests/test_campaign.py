@@ -83,6 +83,20 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
     assert reports.count(str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md")) == 1, reports
     assert "  reports: unchanged, nothing new in domain-one" in said
 
+    # a run that finished before its report was written (the campaign stopped between the two) is skipped on
+    # resume, yet its sweep's report is written then, since the report's run summary lacks it
+    from gns_bench.sweep.summaries import summary_path
+
+    summary_path(tmp_path / "reports", "domain-one", "smoke").unlink()
+    said.clear()
+    third = run_campaign(campaign, "smoke", progress=False, echo=said.append, sweeps_dir=sweeps, **roots)
+    assert [o.status for r in third for o in r.outcomes] == ["SKIPPED", "SKIPPED"]
+    reports = [line.split("report: ")[1] for line in said if line.startswith("  report: ")]
+    assert reports.count(str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md")) == 2, reports
+    assert "  reports: unchanged, nothing new in domain-one" not in said
+    assert "  reports: unchanged, nothing new in domain-two" in said
+    assert summary_path(tmp_path / "reports", "domain-one", "smoke").is_file()
+
     # the front page states what the campaign trained and what that cost, each model once
     lines = campaign_section(tmp_path / "reports", path, sweeps, tiers=("smoke",))
     rows = [r for p in campaign.sweeps for r in collect(load_sweep(p, sweeps), "smoke", tmp_path / "reports")]
