@@ -370,6 +370,21 @@ def get_run(run_id: str) -> RunRecord | None:
                      dict(run.data.params), dict(run.data.metrics), dict(run.data.tags))
 
 
+def end_abandoned_run(run_id: str, reason: str) -> bool:
+    """End a run that a killed process left RUNNING (SIGKILL, a lost machine) as KILLED, with `reason` as its
+    tag `error`, so the store shows no run as live that nothing will finish. True when it did; a run that
+    ended, or is gone, is left as it is."""
+    from mlflow.tracking import MlflowClient
+
+    run = get_run(run_id)
+    if run is None or run.status != "RUNNING":
+        return False
+    client = MlflowClient(tracking_uri=tracking_uri())
+    client.set_tag(run_id, "error", reason[:5000])
+    client.set_terminated(run_id, status="KILLED")
+    return True
+
+
 def delete_run(run_id: str) -> None:
     """Mark a run deleted (MLflow keeps it restorable until its garbage collection)."""
     from mlflow.tracking import MlflowClient

@@ -152,12 +152,17 @@ def _resumable(out_dir: Path, key: str) -> bool:
 
 def set_aside(out_dir: Path) -> Path:
     """Move a run directory this plan cannot resume out of the way, to `<name>.set-aside-<n>` beside it, never
-    deleting it: its checkpoint may be the only copy of hours of training (a plan whose key changed under it)."""
+    deleting it: its checkpoint may be the only copy of hours of training (a plan whose key changed under it).
+    Its MLflow run, if a killed process left it RUNNING, ends KILLED with a tag naming the new folder."""
     index = 1
     while (target := out_dir.with_name(f"{out_dir.name}.set-aside-{index}")).exists():
         index += 1
     out_dir.rename(target)
     print(f"{out_dir}: not resumable under this plan; moved to {target.name}", flush=True)
+    if (id_file := target / RUN_ID_FILE).exists():
+        tracking.end_abandoned_run(id_file.read_text().strip(),
+                                   f"abandoned: its process ended without a checkpoint or under another plan; "
+                                   f"folder set aside to {target}")
     return target
 
 

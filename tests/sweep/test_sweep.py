@@ -270,6 +270,29 @@ def test_a_run_whose_plan_changed_starts_afresh(sweeps: Path, tmp_path: Path,
     assert (aside / "checkpoint.pt").is_file() and (aside / "mlflow_run_id").read_text().strip() == killed.info.run_id
 
 
+def test_a_run_killed_before_its_first_checkpoint_starts_afresh_and_ends_its_record(
+        sweeps: Path, tmp_path: Path) -> None:
+    """A process killed outright (SIGKILL, a lost machine) leaves its MLflow run RUNNING and no checkpoint: the
+    next attempt sets the folder aside, ends that record KILLED with the reason, and trains a new run."""
+    path = sweeps / "tests" / "killed.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[1]"))
+    sweep = load_sweep(path)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
+    (planned,), _, _ = prepare(sweep, "smoke", data_root=roots["data_root"], progress=False, share=False)
+    out_dir = roots["runs_root"] / planned.sweep / planned.tier / planned.name
+    out_dir.mkdir(parents=True)
+    tracking.configure()
+    client = MlflowClient()
+    orphan = client.create_run(tracking.experiment_id(sweep.experiment), run_name=planned.name).info.run_id
+    (out_dir / "mlflow_run_id").write_text(orphan)  # what a killed attempt leaves behind: no checkpoint.pt
+    (outcome,) = run_sweep(sweep, "smoke", **roots)
+    assert outcome.status == "FINISHED" and outcome.run_id != orphan, outcome.error
+    ended = client.get_run(orphan)
+    assert ended.info.status == "KILLED" and ended.info.end_time is not None
+    assert "set aside" in ended.data.tags["error"] and ended.data.tags["error"].endswith("set-aside-1")
+    assert (out_dir.with_name(f"{out_dir.name}.set-aside-1") / "mlflow_run_id").read_text() == orphan
+
+
 def test_submitit_local_executor(sweeps: Path, tmp_path: Path) -> None:
     path = sweeps / "tests" / "submitit.toml"
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
