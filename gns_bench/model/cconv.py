@@ -357,11 +357,17 @@ class CConvSimulator(nn.Module):
 
     def unrolled_loss(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
                       context: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
-                      precision: str = "fp32") -> torch.Tensor:
+                      precision: str = "fp32", position_noise: torch.Tensor | None = None,
+                      position_correction: float = 0.0) -> torch.Tensor:
         """The authors' loss over S = unrolled_steps predicted steps from the first W frames of window [N, W+S, D]
         (train_network_torch.py:114-145): predictions are fed back (kinematic particles from the data); step s
         costs the mean over fluid particles of exp(-neighbour_scale * n_i) |x_pred - x_true|^gamma, per scene,
-        averaged over scenes, then over steps, times loss_scale."""
+        averaged over scenes, then over steps, times loss_scale.
+
+        `position_noise` [N, W, D] (the GNS's random-walk noise, `model.noise`): its authors train without it,
+        and the paper swept CConv's training noise (Sec. 5.5, App. D.1). It corrupts the W input frames, and
+        every target moves by (1 - position_correction) times the last frame's noise, as the GNS's target does
+        (`noisy_training_pair`): with 0 the model restores the true velocities and keeps the offset."""
         c = self.config
         steps = c.unrolled_steps
         w = window.shape[1] - steps
@@ -377,11 +383,17 @@ class CConvSimulator(nn.Module):
         per_graph = torch.zeros(num_graphs, dtype=window.dtype, device=window.device)
         count = per_graph.index_add(0, graph, torch.ones_like(graph, dtype=window.dtype))
         has_fluid = count > 0
-        history = window[:, :w]
+        history, offset = window[:, :w], 0.0
+        if position_noise is not None:
+            if position_noise.shape != history.shape:
+                raise ValueError(f"position_noise of shape {tuple(position_noise.shape)}: the {w} input frames "
+                                 f"are {tuple(history.shape)}")
+            history = history + position_noise
+            offset = (1.0 - position_correction) * position_noise[:, -1]
         total = window.new_zeros(())
         for s in range(steps):
             out = self.step(history, particle_type, batch, context, bounds, precision)
-            target = window[:, w + s]
+            target = window[:, w + s] + offset
             error = (out.position - target).index_select(0, fluid_index) * self.length_scale
             distance = (error.square().sum(dim=1) + c.distance_epsilon) ** (c.gamma / 2)
             importance = torch.exp(-c.neighbour_scale * out.fluid_neighbours.index_select(0, fluid_index))

@@ -156,13 +156,19 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
         for i, value in enumerate(values):
             at_value = [r for r in rows if r.planned.axes[axis] == value]
             seeds = stats["rollout_mse"][i][2]
-            cells = [f"{fmt(stats[m][i][0])} ± {fmt(stats[m][i][1])}" if stats[m][i][2] else MISSING
-                     for m, _ in figures.PANELS]
+            cells = [mean_cell(*stats[m][i]) for m, _ in figures.PANELS]
             cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—"]
             lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
         judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
         lines += ["", verdict_line(axis, values, rows, reference), ""] if judged else [""]
     return lines
+
+
+def mean_cell(mean: float, std: float, count: int) -> str:
+    """"mean ± sample std" over seeds; the mean alone from one seed (a spread needs two)."""
+    if not count:
+        return MISSING
+    return fmt(mean) + (f" ± {fmt(std)}" if count > 1 else "")
 
 
 def baseline_section(sweep: SweepSpec, tier: str, rows: list[RunRow], reports_root: Path, compare: bool) -> list[str]:

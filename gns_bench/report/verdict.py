@@ -28,6 +28,8 @@ NOT_REPRODUCED = "not reproduced"
 WITHIN_SPREAD = "inconclusive (within the seed spread)"
 NO_SPREAD = "inconclusive (no seed spread yet)"
 NOT_RUN = "inconclusive (the values the paper compares were not run)"
+PAIR_WORDS = {"yes": "as the paper, beyond the band", "no": "against the paper, beyond the band",
+              "tie": "within the band"}
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,7 @@ def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -
     for a, b, ea, eb in pairs:
         gap = mean_log(eb) - mean_log(ea)  # > 0: a has the lower error, as the paper found
         outcomes.append("yes" if gap > band else "no" if gap < -band else "tie")
-        words.append(f"{a} vs {b}: {10 ** -gap:.2g}x")
+        words.append(f"{a} vs {b}: {10 ** -gap:.2g}x ({PAIR_WORDS[outcomes[-1]]})")
     detail = "; ".join(words) + f" (error of the first over the second; band: x{10 ** band:.2g} either way)"
     if "no" in outcomes:
         return Verdict(NOT_REPRODUCED, detail)

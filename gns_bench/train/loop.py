@@ -85,11 +85,14 @@ def batch_loss(simulator: Simulator, batch: GraphBatch, position_noise: torch.Te
                model: torch.nn.Module | None = None, num_moving: int | None = None, world_size: int = 1,
                precision: str = "fp32") -> torch.Tensor:
     """The architecture's own training loss on a batch: the GNS's noisy one-step loss (`training_loss`),
-    CConv's unrolled one (its authors train it without noise), DPI-Net's on normalised velocities."""
+    CConv's unrolled one (its authors train it without noise: train.noise_std = 0 in its sweeps), DPI-Net's on
+    normalised velocities."""
     architecture = getattr(simulator, "architecture", "gns")
     if architecture == "cconv":
         window = torch.cat([batch.window, batch.future if batch.future is not None else batch.target[:, None]], 1)
-        return simulator.unrolled_loss(window, batch.particle_type, batch.batch, batch.context, precision=precision)
+        return simulator.unrolled_loss(window, batch.particle_type, batch.batch, batch.context, precision=precision,
+                                       position_noise=position_noise,
+                                       position_correction=config.train.position_correction)
     if architecture == "dpi":  # normalised next velocities; noise as the GNS's (their recipe: train.noise_std = 0)
         return simulator.training_loss(batch.window, batch.target, batch.particle_type, batch.batch, position_noise,
                                        precision=precision)

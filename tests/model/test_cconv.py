@@ -20,6 +20,7 @@ from gns_bench.model.cconv import (
     learning_rate,
     poly6_window,
 )
+from gns_bench.model.noise import random_walk_position_noise
 
 KINEMATIC = 3
 WATER = 5
@@ -239,6 +240,27 @@ def test_unrolled_loss_is_differentiable_and_learns_free_fall() -> None:
     assert sim.network.convs[-1].kernel.grad.abs().sum() > 0
     # the floor: every error zero leaves loss_scale * exp(-n/40) * epsilon^(gamma/2) (~0.7)
     assert losses[-1] < 0.5 * losses[0], losses[::10]
+
+
+def test_training_noise_corrupts_the_inputs_and_moves_the_targets() -> None:
+    """The paper swept CConv's training noise (App. D.1): the GNS's random-walk noise on the input frames, the
+    targets moved by (1 - position_correction) times the last frame's noise."""
+    torch.manual_seed(0)
+    sim = CConvSimulator(CConvConfig(), metadata())  # no walls: nothing is tied to absolute positions
+    window, types = scene(n_kinematic=0, frames=5)  # W = 3 inputs, S = 2 unrolled targets
+    with torch.no_grad():
+        clean = sim.unrolled_loss(window, types)
+        torch.testing.assert_close(sim.unrolled_loss(window, types, position_noise=torch.zeros(24, 3, 2)), clean)
+        # a constant offset is noise on positions, none on velocities: at 0% correction the targets carry it
+        # too, so a translation-invariant model sees the same problem; at 100% it must undo it, and cannot
+        offset = torch.tensor([0.01, -0.02]).expand(24, 3, 2)
+        torch.testing.assert_close(sim.unrolled_loss(window, types, position_noise=offset), clean, rtol=1e-4,
+                                   atol=1e-6)
+        assert sim.unrolled_loss(window, types, position_noise=offset, position_correction=1.0) > 2 * clean
+        walk = random_walk_position_noise((24, 3, 2), 3e-3, torch.Generator().manual_seed(1))
+        assert not torch.isclose(sim.unrolled_loss(window, types, position_noise=walk), clean, rtol=1e-3)
+        with pytest.raises(ValueError, match="input frames"):
+            sim.unrolled_loss(window, types, position_noise=torch.zeros(24, 5, 2))
 
 
 def test_kinematic_particles_are_only_obstacle_sources() -> None:

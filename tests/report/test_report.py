@@ -22,7 +22,7 @@ from gns_bench.report.cells import budget_statement, cv_ratio
 from gns_bench.report.collect import collect, domain_sweeps, load_rollouts
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
-from gns_bench.report.report import accuracy_row, write_domains_report
+from gns_bench.report.report import accuracy_row, mean_cell, write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
@@ -390,3 +390,9 @@ def test_a_run_drawn_in_another_report_is_linked_not_drawn_again(tmp_path: Path)
     assert _shared_pictures(row("trained", {}), here)  # the run the copies came from links them too
     assert _shared_pictures(row("other", {}), here) == []  # a run nobody drew: drawn here
     assert _shared_pictures(copy, drew) == []  # never a link to itself
+
+
+def test_an_ablation_cell_shows_a_spread_only_where_there_are_two_seeds() -> None:
+    assert mean_cell(0.0101, 0.000372, 2) == "0.0101 ± 0.000372"
+    assert mean_cell(0.0638, 0.0, 1) == "0.0638"  # one seed has no spread: not "± 0"
+    assert mean_cell(float("nan"), float("nan"), 0) == "**missing**"

@@ -18,9 +18,14 @@ def test_a_clear_ordering_reproduces_the_paper() -> None:
 
 
 def test_a_reversed_pair_is_not_reproduced_and_a_small_gap_is_inconclusive() -> None:
-    assert judge({10: DEFAULT, 1: [0.5]}, STEPS).verdict == NOT_REPRODUCED
+    reversed_pair = judge({10: DEFAULT, 1: [0.5]}, STEPS)
+    assert reversed_pair.verdict == NOT_REPRODUCED
+    assert "10 vs 1: 2x (against the paper, beyond the band)" in reversed_pair.detail
     assert judge({10: DEFAULT, 1: [1.1]}, STEPS).verdict == WITHIN_SPREAD
-    assert judge({10: DEFAULT, 5: [1.05], 1: [3.0]}, STEPS).verdict == WITHIN_SPREAD  # two clear, 10 vs 5 within
+    mixed = judge({10: DEFAULT, 5: [1.05], 1: [3.0]}, STEPS)  # two clear, 10 vs 5 within
+    assert mixed.verdict == WITHIN_SPREAD
+    assert "10 vs 5: 0.95x (within the band)" in mixed.detail  # the pair the verdict turns on, named as such
+    assert "5 vs 1: 0.35x (as the paper, beyond the band)" in mixed.detail
 
 
 def test_without_seeds_or_pairs_there_is_no_verdict() -> None:
