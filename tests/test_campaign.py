@@ -163,3 +163,45 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
     # stress sweep tests that run's model: no training of its own, and its stress rollouts are not counted
     assert lines[-1] == ("campaign c (smoke): to run: 2 runs, 8 s of training and 11 s of evaluation at the rates "
                          "measured here")
+
+
+def test_a_sweep_s_finished_runs_reach_its_run_summary_before_the_sweep_ends(sweeps: Path, tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """A campaign stopped in the middle of a sweep, on a machine that then loses its MLflow store and
+    checkpoints, trains again only the runs that had not finished: each finished run reached the committed run
+    summary as it ended."""
+    from gns_bench.sweep import runner
+    from gns_bench.sweep.runner import SUMMARISED, prepare
+    from gns_bench.sweep.summaries import read_run_summary, summary_path
+
+    (sweeps / "ablations" / "steps.toml").write_text(
+        'description = "steps"\ndomain = "tiny"\n[grid]\n"model.message_passing_steps" = [1, 2]\n'
+        '[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 8\n')
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["ablations/steps.toml"]\n')
+    campaign = load_campaign(path, sweeps)
+    real, trained = runner.execute_run, []
+
+    def stopped_at_the_second(run, *args, **kwargs):
+        if trained:
+            raise KeyboardInterrupt  # the session ended while the second run trained
+        trained.append(run.name)
+        return real(run, *args, **kwargs)
+
+    monkeypatch.setattr(runner, "execute_run", stopped_at_the_second)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'lost.db'}")
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
+    said: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(campaign, "smoke", progress=False, echo=said.append, sweeps_dir=sweeps, **roots)
+    assert len(trained) == 1
+    summary = read_run_summary(summary_path(tmp_path / "reports", "ablation-steps", "smoke"))
+    assert list(summary) == trained and summary[trained[0]].status == "FINISHED"
+    assert any(line.startswith("  report so far: ") for line in said)
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'new.db'}")  # a new machine: nothing kept
+    shutil.rmtree(tmp_path / "runs")
+    sweep = load_sweep(campaign.sweeps[0], sweeps)
+    runs, status, _ = prepare(sweep, "smoke", tmp_path / "data", generate=False, reports_root=tmp_path / "reports")
+    assert status[trained[0]] == SUMMARISED
+    assert [r.name for r in runs if status[r.name] == "to run"] == [r.name for r in runs if r.name != trained[0]]

@@ -349,12 +349,14 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
               launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
               only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
               parallel: int = 1, reports_root: Path | None = None,
-              echo: Callable[[str], None] = print) -> list[RunOutcome]:
+              echo: Callable[[str], None] = print,
+              after_run: Callable[[RunOutcome, int], None] | None = None) -> list[RunOutcome]:
     """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
     the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
-    GPU, sharing the device: issue #22)."""
+    GPU, sharing the device: issue #22). `after_run(outcome, runs_left)`: called as each run the local launcher
+    trains one at a time ends, with how many of this call's runs are still to train."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
     if parallel > 1 and launcher != "local":
@@ -404,6 +406,8 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
             if outcome.status == "FAILED":
                 echo(f"  FAILED: {outcome.error}")
             outcomes.append(outcome)
+            if after_run is not None:
+                after_run(outcome, len(pending) - index)
     elif launcher == "submitit":
         from gns_bench.sweep.launchers import submit
 
