@@ -205,8 +205,11 @@ def verdict_line(axis: str, values: list, rows: list[RunRow], reference: dict) -
     errors = {value: [r.metric("rollout_mse") / comparable_cv(r) for r in rows
                       if r.planned.axes[axis] == value and comparable_cv(r) > 0] for value in values}
     outcome = judge(errors, reference)
+    finished = sum(r.ok for r in rows)
+    so_far = "" if finished == len(rows) else (f" So far: from {finished} of the {len(rows)} planned runs; the rest "
+                                                "are not finished, and the verdict may change with them.")
     return (f"**Verdict ({axis}): {outcome.verdict}.** Paper: {reference.get('summary', '—')}. Ours: {outcome.detail}; "
-            "error = rollout MSE / constant velocity's over the same steps.")
+            "error = rollout MSE / constant velocity's over the same steps." + so_far)
 
 
 def runs_table(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:

@@ -396,3 +396,26 @@ def test_an_ablation_cell_shows_a_spread_only_where_there_are_two_seeds() -> Non
     assert mean_cell(0.0101, 0.000372, 2) == "0.0101 ± 0.000372"
     assert mean_cell(0.0638, 0.0, 1) == "0.0638"  # one seed has no spread: not "± 0"
     assert mean_cell(float("nan"), float("nan"), 0) == "**missing**"
+
+
+def test_a_verdict_from_a_sweep_still_training_says_how_many_runs_it_rests_on() -> None:
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import verdict_line
+
+    sweep = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
+    planned = sweep.plan("cpu")
+    assert len(planned) == 5  # M = 1 and 5, and the default 10 at three seeds
+
+    def row(run, rollout: float) -> RunRow:
+        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 0.0}
+        return RunRow(run, tracking.RunRecord("r", run.name, "FINISHED", 0, {}, metrics))
+
+    errors = {1: 0.8, 5: 0.3, 10: 0.35}
+    reference = ablation_reference("model.message_passing_steps")
+    values = [1, 5, 10]
+    partway = [row(r, errors[r.axes["model.message_passing_steps"]]) if i < 3 else RunRow(r, None)
+               for i, r in enumerate(planned)]
+    line = verdict_line("model.message_passing_steps", values, partway, reference)
+    assert "So far: from 3 of the 5 planned runs" in line
+    done = [row(r, errors[r.axes["model.message_passing_steps"]]) for r in planned]
+    assert "So far" not in verdict_line("model.message_passing_steps", values, done, reference)
