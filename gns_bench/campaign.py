@@ -57,8 +57,9 @@ def _report_partway(path: Path, tier: str, reports_root: Path, echo: Callable[[s
                     outcome: RunOutcome, runs_left: int) -> None:
     """A run of a sweep with more still to train finished: write the sweep's report now, so its run summary
     holds the run and a later session resumes without it even when this machine's MLflow store and checkpoints
-    are lost (one was, with three finished runs of a five-run ablation: 2026-12-01). About 20 s against a run's
-    30-55 min. A report that fails here is said and left to the sweep's end."""
+    are lost (one was, with three finished runs of a five-run ablation: 2026-12-01). It costs one report's MLflow
+    reads and pictures, small against a run's 15-55 min. A report that fails here is said and left to the sweep's
+    end."""
     if outcome.status != "FINISHED" or runs_left == 0:
         return  # the sweep's end writes the report
     try:
