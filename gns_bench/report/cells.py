@@ -19,6 +19,13 @@ def fmt(value: float) -> str:
     return "—" if value is None or not math.isfinite(value) else f"{value:.3g}"
 
 
+def mean_cell(mean: float, std: float, count: int) -> str:
+    """"mean ± sample std" over seeds; the mean alone from one seed (a spread needs two)."""
+    if not count:
+        return MISSING
+    return fmt(mean) + (f" ± {fmt(std)}" if count > 1 else "")
+
+
 def times(value: float) -> str:
     """A ratio already divided: "0.436x", or "—" when missing."""
     return fmt(value) if fmt(value) == "—" else f"{fmt(value)}x"

@@ -27,6 +27,7 @@ from gns_bench.report.cells import (
     definitions_section,
     fmt,
     machines,
+    mean_cell,
     ratio,
     run_id_cell,
     run_ids_cell,
@@ -162,13 +163,6 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
         judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
         lines += ["", verdict_line(axis, values, rows, reference), ""] if judged else [""]
     return lines
-
-
-def mean_cell(mean: float, std: float, count: int) -> str:
-    """"mean ± sample std" over seeds; the mean alone from one seed (a spread needs two)."""
-    if not count:
-        return MISSING
-    return fmt(mean) + (f" ± {fmt(std)}" if count > 1 else "")
 
 
 def baseline_section(sweep: SweepSpec, tier: str, rows: list[RunRow], reports_root: Path, compare: bool) -> list[str]:

@@ -18,6 +18,7 @@ from gns_bench.report.cells import (  # noqa: E402
     MISSING,
     fmt,
     machines,
+    mean_cell,
     relative_to_cv,
     run_ids_cell,
     shared_cores_mark,
@@ -90,7 +91,7 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
         steps, seconds = mean("train/final_step"), mean("train/wall_time_s")
         cells = [f"`{name}`", str(seeds) if done else MISSING, fmt(steps), fmt(seconds) + shared_cores_mark(done),
                  fmt(seconds / steps) if steps else "—", fmt(mean("one_step_mse")),
-                 fmt(rollout) + (f" ± {fmt(rollout_std)}" if seeds > 1 else ""),
+                 mean_cell(rollout, rollout_std, seeds) if seeds else fmt(rollout),
                  f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
                  f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
                  steps_covered(done) if done else "—",

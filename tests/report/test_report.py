@@ -18,11 +18,11 @@ from PIL import Image
 from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.report import write_all_reports, write_report
-from gns_bench.report.cells import budget_statement, cv_ratio
+from gns_bench.report.cells import budget_statement, cv_ratio, mean_cell
 from gns_bench.report.collect import collect, domain_sweeps, load_rollouts
 from gns_bench.report.figures import pareto_front
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
-from gns_bench.report.report import accuracy_row, mean_cell, write_domains_report
+from gns_bench.report.report import accuracy_row, write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
