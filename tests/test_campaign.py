@@ -205,3 +205,33 @@ def test_a_sweep_s_finished_runs_reach_its_run_summary_before_the_sweep_ends(swe
     runs, status, _ = prepare(sweep, "smoke", tmp_path / "data", generate=False, reports_root=tmp_path / "reports")
     assert status[trained[0]] == SUMMARISED
     assert [r.name for r in runs if status[r.name] == "to run"] == [r.name for r in runs if r.name != trained[0]]
+
+
+def test_the_front_page_counts_the_models_a_stress_sweep_would_train_again(sweeps: Path, tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stress sweep tests its domain run's checkpoint, and trains the model again where that checkpoint was
+    lost with its store; the front page's "to go" says so beside its count, and drops it once the stress sweep
+    has run."""
+    from gns_bench.report.index import campaign_section
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'stress.db'}")
+    (sweeps / "stress").mkdir()
+    (sweeps / "stress" / "one.toml").write_text(SWEEP.format(name="tests of 'one'", steps=1)
+                                                + '\n[config.stress]\ntests = ["precision"]\n')
+    first = sweeps / "campaigns" / "domains.toml"
+    first.write_text('sweeps = ["domains/one.toml"]\n')
+    whole = sweeps / "campaigns" / "whole.toml"
+    whole.write_text('sweeps = ["domains/one.toml", "stress/one.toml"]\n')
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
+    run_campaign(load_campaign(first, sweeps), "smoke", progress=False, echo=lambda _: None, sweeps_dir=sweeps,
+                 **roots)
+    row = campaign_section(tmp_path / "reports", whole, sweeps, tiers=("smoke",))[-2]
+    # one model planned (the stress sweep tests the domain's), trained; the stress sweep is still to run
+    assert row.startswith("| smoke | 1 of 1 |"), row
+    assert "| none; and 1 trained model again (about " in row and "if its checkpoint is gone" in row, row
+
+    said: list[str] = []
+    run_campaign(load_campaign(whole, sweeps), "smoke", progress=False, echo=said.append, sweeps_dir=sweeps, **roots)
+    assert any("stress tests of domain-one" in line for line in said), said  # the checkpoint was here: tested
+    row = campaign_section(tmp_path / "reports", whole, sweeps, tiers=("smoke",))[-2]
+    assert row.startswith("| smoke | 1 of 1 |") and "| none |" in row, row

@@ -213,31 +213,39 @@ def _training_key(run) -> str:
     return json.dumps([run.training_domain, run.dataset_tier, run.dataset_seed, config], sort_keys=True, default=str)
 
 
-def _to_go(remaining: int, trained: list[RunRow]) -> str:
+def _to_go(remaining: int, trained: list[RunRow], retrain: int = 0) -> str:
     """The models still to train and the time they would take at the mean training and evaluation time of those
     trained so far: an extrapolation, since later sweeps' domains and models differ (each was budgeted GOOP's
     training time, issue #19); stress tests' own rollouts are not counted. Where the runs recorded more than
     one CPU generation, also at each generation's own mean: runs took about twice as long on family 25 as on
-    family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs."""
-    if remaining <= 0:
+    family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs. `retrain`: models
+    already trained that a stress sweep still to run trains again if their checkpoints are gone (a run summary
+    keeps a run's metrics, not its weights: `sweep/runner.py`), stated beside the count, not in it."""
+    if remaining <= 0 and retrain <= 0:
         return "none"
 
-    def estimate(rows: list[RunRow]) -> str:
+    def estimate(rows: list[RunRow], count: int) -> str:
         per_run = []
         for key in ("train/wall_time_s", "evaluation_seconds"):
             values = [r.metric(key) for r in rows if math.isfinite(r.metric(key))]
             per_run.append(sum(values) / len(values) if values else 0.0)
-        return format_duration(remaining * sum(per_run))
+        return format_duration(count * sum(per_run))
 
-    text = f"{remaining} model{'s' if remaining > 1 else ''}, about {estimate(trained)}"
-    by_generation: dict[str, list[RunRow]] = {}
-    for row in trained:
-        if generation := run_cpu_generation(row):
-            by_generation.setdefault(generation, []).append(row)
-    if len(by_generation) > 1:
-        text += " (at the mean of " + "; ".join(
-            f"CPU {generation}'s {len(rows)} run{'s' * (len(rows) > 1)}: {estimate(rows)}"
-            for generation, rows in sorted(by_generation.items())) + ")"
+    text = "none"
+    if remaining > 0:
+        text = f"{remaining} model{'s' if remaining > 1 else ''}, about {estimate(trained, remaining)}"
+        by_generation: dict[str, list[RunRow]] = {}
+        for row in trained:
+            if generation := run_cpu_generation(row):
+                by_generation.setdefault(generation, []).append(row)
+        if len(by_generation) > 1:
+            text += " (at the mean of " + "; ".join(
+                f"CPU {generation}'s {len(rows)} run{'s' * (len(rows) > 1)}: {estimate(rows, remaining)}"
+                for generation, rows in sorted(by_generation.items())) + ")"
+    if retrain > 0:
+        text += (f"; and {retrain} trained model{'s' * (retrain > 1)} again (about {estimate(trained, retrain)}) "
+                 f"if {'their checkpoints are' if retrain > 1 else 'its checkpoint is'} gone when the stress "
+                 f"sweeps test {'them' if retrain > 1 else 'it'}")
     return text
 
 
@@ -260,8 +268,11 @@ def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "
         evaluation = (format_duration(sum(timed)) + (f" ({len(timed)} of {len(trained)} runs logged it)"
                                                      if len(timed) < len(trained) else "")) if timed else "—"
         ran_on = machines(trained)
-        lines.append(f"| {tier} | {len(trained)} of {len(planned)} | {format_duration(training)} | {evaluation} | "
-                     f"{_to_go(len(planned) - len(trained), list(trained))} | {ran_on} |")
+        models = {_training_key(r.planned) for r in trained}  # a model a stress sweep trained again counts once
+        stress_waiting = {_training_key(r.planned) for r in rows if r.planned.config.stress.enabled and not r.ok}
+        to_go = _to_go(len(planned - models), list(trained), retrain=len(stress_waiting & models))
+        lines.append(f"| {tier} | {len(models)} of {len(planned)} | {format_duration(training)} | {evaluation} | "
+                     f"{to_go} | {ran_on} |")
     if not lines:
         return []
     return [f"## The campaign (`sweeps/campaigns/{campaign_file.name}`)", "",
@@ -270,7 +281,9 @@ def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "
             "evaluation left out), evaluation as its `evaluation_seconds` (every test rollout and metric). What is "
             "left is extrapolated at the mean training and evaluation time of the models trained so far, and at each "
             "CPU generation's mean where the runs came from more than one (their step rates differ); the stress "
-            "tests' own rollouts are not counted.", "",
+            "tests' own rollouts are not counted. A stress sweep tests the checkpoint of its domain's model; where "
+            "that checkpoint was lost with the store that held it (reports/NOTES.md), it trains the model again, "
+            "and the time that would take is stated after the count.", "",
             "| tier | models trained | training time | evaluation time | to go, at the mean so far | machines |",
             "|---|---|---|---|---|---|",
             *lines, ""]
