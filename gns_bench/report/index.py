@@ -221,9 +221,6 @@ def _to_go(remaining: int, trained: list[RunRow], retrain: int = 0) -> str:
     family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs. `retrain`: models
     already trained that a stress sweep still to run trains again if their checkpoints are gone (a run summary
     keeps a run's metrics, not its weights: `sweep/runner.py`), stated beside the count, not in it."""
-    if remaining <= 0 and retrain <= 0:
-        return "none"
-
     def estimate(rows: list[RunRow], count: int) -> str:
         per_run = []
         for key in ("train/wall_time_s", "evaluation_seconds"):
