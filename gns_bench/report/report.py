@@ -22,7 +22,6 @@ from gns_bench.report.cells import (
     against_cv,
     any_stopped,
     budget_statement,
-    comparable_cv,
     cv_ratio,
     definitions_section,
     fmt,
@@ -50,7 +49,7 @@ from gns_bench.report.index import write_index
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
-from gns_bench.report.verdict import judge
+from gns_bench.report.verdict import judge_axis
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary
 
@@ -161,7 +160,7 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
             cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—"]
             lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
         judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
-        lines += ["", verdict_line(axis, values, rows, reference), ""] if judged else [""]
+        lines += ["", *verdict_lines(axis, rows, reference), ""] if judged else [""]
     return lines
 
 
@@ -192,18 +191,23 @@ def _link_report(name: str, tier: str) -> str:
     return f"[{name}/{tier}](../../{name}/{tier}/README.md)"
 
 
-def verdict_line(axis: str, values: list, rows: list[RunRow], reference: dict) -> str:
-    """The computed verdict on the paper's finding for this axis (gns_bench/report/verdict.py)."""
+def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
+    """The computed verdicts on the paper's finding for this axis (gns_bench/report/verdict.py): on the error,
+    and, where a health monitor stopped rollouts, on how many steps they ran before the stop."""
     if "better" not in reference and not reference.get("no_effect"):
-        return f"**Verdict ({axis}):** the paper states no finding on this axis to compare with."
-    errors = {value: [r.metric("rollout_mse") / comparable_cv(r) for r in rows
-                      if r.planned.axes[axis] == value and comparable_cv(r) > 0] for value in values}
-    outcome = judge(errors, reference)
+        return [f"**Verdict ({axis}):** the paper states no finding on this axis to compare with."]
+    error, length = judge_axis(axis, rows, reference)
     finished = sum(r.ok for r in rows)
     so_far = "" if finished == len(rows) else (f" So far: from {finished} of the {len(rows)} planned runs; the rest "
                                                 "are not finished, and the verdict may change with them.")
-    return (f"**Verdict ({axis}): {outcome.verdict}.** Paper: {reference.get('summary', '—')}. Ours: {outcome.detail}; "
-            "error = rollout MSE / constant velocity's over the same steps." + so_far)
+    lines = [f"**Verdict ({axis}): {error.verdict}.** Paper: {reference.get('summary', '—')}. Ours: {error.detail}; "
+             "error = rollout MSE / constant velocity's over the same steps." + so_far]
+    if length:
+        lines += ["", f"**Verdict on rollout length ({axis}): {length.verdict}.** The error above is taken over the "
+                      "steps before each rollout's stop, so it cannot see a model whose rollouts collapse sooner; "
+                      f"this one compares the mean number of steps they ran (column *rollout steps*). Ours: "
+                      f"{length.detail}." + so_far]
+    return lines
 
 
 def runs_table(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:

@@ -12,6 +12,10 @@ deviation (n - 1) of the log error over those seeds. A difference beyond the ban
 - `no_effect = true` (App. C.1's minor axes): *reproduced* when every value stays within the band of the
   default, else *not reproduced*.
 Without at least two finished seeds at the default there is no band: *inconclusive (no seed spread yet)*.
+
+The same rules judge any positive measure of the runs on a log scale; `higher_is_better` flips the direction
+for one where more is better, such as the number of rollout steps before a health monitor's stop, which the
+error above cannot see (a rollout that collapses early is compared over its own few steps).
 """
 
 from __future__ import annotations
@@ -22,6 +26,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from gns_bench.report.cells import any_stopped, relative_to_cv
+from gns_bench.report.collect import RunRow
 
 REPRODUCED = "the paper's direction reproduced"
 NOT_REPRODUCED = "not reproduced"
@@ -52,9 +59,12 @@ def _find(errors: Mapping[Any, Sequence[float]], value: Any) -> list[float] | No
     return None
 
 
-def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -> Verdict:
-    """`errors[value]`: the finished runs' errors (GNS / constant velocity) at each axis value; `reference`:
-    the axis' entry of paper_reference.toml (`default`, and `better` or `no_effect`)."""
+def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any], quantity: str = "error",
+          higher_is_better: bool = False) -> Verdict:
+    """`errors[value]`: the finished runs' errors (GNS / constant velocity) at each axis value, or another
+    positive `quantity` (with `higher_is_better` where more is better); `reference`: the axis' entry of
+    paper_reference.toml (`default`, and `better` or `no_effect`)."""
+    sign = -1.0 if higher_is_better else 1.0
     default = _find(errors, reference.get("default"))
     if default is None or len(default) < 2:
         return Verdict(NO_SPREAD, "fewer than two finished seeds at the paper's default")
@@ -70,7 +80,7 @@ def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -
         if not others:
             return Verdict(NOT_RUN, "no value besides the default finished")
         gaps = [(key, mean_log(values) - base) for key, values in others]
-        detail = "; ".join(f"{key}: {10 ** gap:.2g}x the default's error" for key, gap in gaps)
+        detail = "; ".join(f"{key}: {10 ** gap:.2g}x the default's {quantity}" for key, gap in gaps)
         detail += f" (band: x{10 ** band:.2g} either way)"
         return Verdict(REPRODUCED if all(abs(gap) <= band for _, gap in gaps) else NOT_REPRODUCED, detail)
     pairs = [(a, b, _find(errors, a), _find(errors, b)) for a, b in reference.get("better", [])]
@@ -79,12 +89,32 @@ def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any]) -
         return Verdict(NOT_RUN, "none of the paper's comparisons has both values finished")
     outcomes, words = [], []
     for a, b, ea, eb in pairs:
-        gap = mean_log(eb) - mean_log(ea)  # > 0: a has the lower error, as the paper found
+        log_ratio = mean_log(ea) - mean_log(eb)  # a's quantity over b's
+        gap = -sign * log_ratio  # > 0: a is the better one, as the paper found
         outcomes.append("yes" if gap > band else "no" if gap < -band else "tie")
-        words.append(f"{a} vs {b}: {10 ** -gap:.2g}x ({PAIR_WORDS[outcomes[-1]]})")
-    detail = "; ".join(words) + f" (error of the first over the second; band: x{10 ** band:.2g} either way)"
+        words.append(f"{a} vs {b}: {10 ** log_ratio:.2g}x ({PAIR_WORDS[outcomes[-1]]})")
+    detail = "; ".join(words) + f" ({quantity} of the first over the second; band: x{10 ** band:.2g} either way)"
     if "no" in outcomes:
         return Verdict(NOT_REPRODUCED, detail)
     if all(o == "yes" for o in outcomes):
         return Verdict(REPRODUCED, detail)
     return Verdict(WITHIN_SPREAD, detail)
+
+
+STEPS_BEFORE_STOP = "rollout steps before a stop"
+
+
+def judge_axis(axis: str, rows: Sequence[RunRow], reference: Mapping[str, Any]) -> tuple[Verdict, Verdict | None]:
+    """The verdicts on one ablation axis from its sweep's runs: on the error (rollout MSE / constant velocity's
+    over the same steps), and, where a health monitor stopped some rollout, on the mean number of rollout steps
+    before the stop (None where none stopped: every run then covered the whole horizon)."""
+    values = list(dict.fromkeys(r.planned.axes[axis] for r in rows))
+
+    def at_values(measure) -> dict[Any, list[float]]:
+        return {v: [measure(r) for r in rows if r.planned.axes[axis] == v] for v in values}
+
+    error = judge(at_values(relative_to_cv), reference)
+    if not any_stopped(rows):
+        return error, None
+    steps = at_values(lambda r: r.metric("rollout_steps"))
+    return error, judge(steps, reference, STEPS_BEFORE_STOP, higher_is_better=True)

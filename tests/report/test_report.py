@@ -400,7 +400,7 @@ def test_an_ablation_cell_shows_a_spread_only_where_there_are_two_seeds() -> Non
 
 def test_a_verdict_from_a_sweep_still_training_says_how_many_runs_it_rests_on() -> None:
     from gns_bench.report.collect import RunRow
-    from gns_bench.report.report import verdict_line
+    from gns_bench.report.report import verdict_lines
 
     sweep = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
     planned = sweep.plan("cpu")
@@ -412,10 +412,39 @@ def test_a_verdict_from_a_sweep_still_training_says_how_many_runs_it_rests_on() 
 
     errors = {1: 0.8, 5: 0.3, 10: 0.35}
     reference = ablation_reference("model.message_passing_steps")
-    values = [1, 5, 10]
     partway = [row(r, errors[r.axes["model.message_passing_steps"]]) if i < 3 else RunRow(r, None)
                for i, r in enumerate(planned)]
-    line = verdict_line("model.message_passing_steps", values, partway, reference)
+    (line,) = verdict_lines("model.message_passing_steps", partway, reference)  # no rollout stopped: one verdict
     assert "So far: from 3 of the 5 planned runs" in line
     done = [row(r, errors[r.axes["model.message_passing_steps"]]) for r in planned]
-    assert "So far" not in verdict_line("model.message_passing_steps", values, done, reference)
+    assert "So far" not in verdict_lines("model.message_passing_steps", done, reference)[0]
+
+
+def test_where_monitors_stopped_rollouts_a_second_verdict_judges_how_long_they_ran() -> None:
+    # The noise-0 case of the cpu campaign: every rollout collapsed after about half the default's steps, while
+    # its error against constant velocity over those few steps matched the default's.
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import verdict_lines
+
+    axis = "train.noise_std"
+    planned = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")
+    steps = {0.0: [92.0], 3e-4: [170.0, 160.0, 180.0], 3e-3: [117.0]}
+
+    def row(run, i: int) -> RunRow:
+        value = run.axes[axis]
+        key = next(k for k in steps if abs(k - value) < 1e-12)
+        metrics = {"test/rollout_mse": 0.3, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 1.0,
+                   "test/rollout_steps": steps[key][i % len(steps[key])]}
+        return RunRow(run, tracking.RunRecord(f"r{i}", run.name, "FINISHED", 0, {}, metrics))
+
+    rows = [row(r, i) for i, r in enumerate(planned)]
+    assert sorted(r.planned.axes[axis] for r in rows).count(3e-4) == 3
+    error, _, length = verdict_lines(axis, rows, ablation_reference(axis))
+    assert "inconclusive (within the seed spread)" in error  # equal errors: no difference
+    assert length.startswith(f"**Verdict on rollout length ({axis}): the paper's direction reproduced.**")
+    assert "0.0003 vs 0.0: 1.8x (as the paper, beyond the band)" in length  # 170 steps on average against 92
+    assert "0.0003 vs 0.003: 1.5x (as the paper, beyond the band)" in length
+    unstopped = [RunRow(r.planned, tracking.RunRecord("u", r.planned.name, "FINISHED", 0, {},
+                                                      {**r.record.metrics, "test/rollout_stopped": 0.0}))
+                 for r in rows]
+    assert len(verdict_lines(axis, unstopped, ablation_reference(axis))) == 1  # nothing stopped: no second verdict

@@ -54,3 +54,19 @@ def test_the_band_is_twice_the_sample_std_of_the_defaults_log_error() -> None:
     inside = 10 ** (mean + 0.085)  # beyond the population band (0.0712), inside the sample one (0.0872)
     assert judge({10: DEFAULT, 1: [inside]}, STEPS).verdict == WITHIN_SPREAD
     assert judge({10: DEFAULT, 1: [10 ** (mean + 0.09)]}, STEPS).verdict == REPRODUCED
+
+
+def test_a_measure_where_more_is_better_is_judged_the_other_way_round() -> None:
+    # rollout steps before a monitor's stop: M=10 running 170 steps against M=1's 60 is the paper's direction
+    steps = {10: [170.0, 180.0, 160.0], 1: [60.0]}
+    verdict = judge(steps, STEPS, "rollout steps before a stop", higher_is_better=True)
+    assert verdict.verdict == REPRODUCED
+    assert "10 vs 1: 2.8x (as the paper, beyond the band)" in verdict.detail
+    assert "rollout steps before a stop of the first over the second" in verdict.detail
+    # the same numbers read as errors (lower is better) go against the paper
+    assert judge(steps, STEPS).verdict == NOT_REPRODUCED
+    fewer = judge({10: [170.0, 180.0, 160.0], 1: [400.0]}, STEPS, "steps", higher_is_better=True)
+    assert fewer.verdict == NOT_REPRODUCED and "10 vs 1: 0.42x (against the paper, beyond the band)" in fewer.detail
+    assert judge({10: [170.0, 180.0, 160.0], 1: [168.0]}, STEPS, higher_is_better=True).verdict == WITHIN_SPREAD
+    minor = judge({2: [170.0, 180.0, 160.0], 1: [60.0]}, MINOR, "steps", higher_is_better=True)
+    assert minor.verdict == NOT_REPRODUCED and "1: 0.35x the default's steps" in minor.detail
