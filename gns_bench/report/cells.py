@@ -106,12 +106,14 @@ def against_cv(rows: list[RunRow]) -> str:
 
 
 def steps_covered(rows: list[RunRow]) -> str:
-    """Mean number of steps the finished runs' rollouts covered, and the share a monitor stopped."""
-    steps, _, n = mean_std([r.metric("rollout_steps") for r in rows])
+    """Mean number of steps the finished runs' rollouts covered (± the sample std over runs, where they differ:
+    the spread the rollout-length verdict's band comes from), and the share a monitor stopped."""
+    steps, std, n = mean_std([r.metric("rollout_steps") for r in rows])
     if not n:
         return MISSING if not any(r.ok for r in rows) else "—"
     stopped = mean_std([r.metric("rollout_stopped") for r in rows])[0]
-    return f"{steps:.0f}" + (f" ({stopped:.0%} stopped)" if stopped > 0 else "")
+    spread = f" ± {std:.0f}" if std > 0 else ""  # every run over the whole horizon: no spread to show
+    return f"{steps:.0f}{spread}" + (f" ({stopped:.0%} stopped)" if stopped > 0 else "")
 
 
 def used_precision(row: RunRow) -> str:

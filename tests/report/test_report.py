@@ -398,6 +398,22 @@ def test_an_ablation_cell_shows_a_spread_only_where_there_are_two_seeds() -> Non
     assert mean_cell(float("nan"), float("nan"), 0) == "**missing**"
 
 
+def test_the_rollout_steps_cell_shows_the_spread_over_seeds() -> None:
+    from gns_bench.report.cells import steps_covered
+    from gns_bench.report.collect import RunRow
+
+    planned = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")[0]
+
+    def row(steps: float, stopped: float) -> RunRow:
+        metrics = {"test/rollout_steps": steps, "test/rollout_stopped": stopped}
+        return RunRow(planned, tracking.RunRecord("r", "n", "FINISHED", 0, {}, metrics))
+
+    # the default noise's three seeds in the cpu campaign: sample std 58.9 (n - 1)
+    assert steps_covered([row(122, 0.8), row(236, 0.8), row(153, 0.8)]) == "170 ± 59 (80% stopped)"
+    assert steps_covered([row(92, 1.0)]) == "92 (100% stopped)"  # one seed: no spread to show
+    assert steps_covered([row(300, 0.0), row(300, 0.0)]) == "300"  # all over the whole horizon: nothing to show
+
+
 def test_a_verdict_from_a_sweep_still_training_says_how_many_runs_it_rests_on() -> None:
     from gns_bench.report.collect import RunRow
     from gns_bench.report.report import verdict_lines
