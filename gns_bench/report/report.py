@@ -49,7 +49,7 @@ from gns_bench.report.index import write_index
 from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
-from gns_bench.report.verdict import judge_axis
+from gns_bench.report.verdict import ERROR, ONE_STEP, STEPS_BEFORE_STOP, judge_axis
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary
 
@@ -192,11 +192,13 @@ def _link_report(name: str, tier: str) -> str:
 
 
 def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
-    """The computed verdicts on the paper's finding for this axis (gns_bench/report/verdict.py): on the error,
-    and, where a health monitor stopped rollouts, on how many steps they ran before the stop."""
+    """The computed verdicts on the paper's finding for this axis (gns_bench/report/verdict.py): on the error;
+    where a health monitor stopped rollouts, on how many steps they ran before the stop; and where the paper
+    states a direction for it, on the one-step error."""
     if "better" not in reference and not reference.get("no_effect"):
         return [f"**Verdict ({axis}):** the paper states no finding on this axis to compare with."]
-    error, length = judge_axis(axis, rows, reference)
+    verdicts = judge_axis(axis, rows, reference)
+    error, length, one_step = (verdicts.get(q) for q in (ERROR, STEPS_BEFORE_STOP, ONE_STEP))
     finished = sum(r.ok for r in rows)
     so_far = "" if finished == len(rows) else (f" So far: from {finished} of the {len(rows)} planned runs; the rest "
                                                 "are not finished, and the verdict may change with them.")
@@ -207,6 +209,10 @@ def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
                       "steps before each rollout's stop, so it cannot see a model whose rollouts collapse sooner; "
                       f"this one compares the mean number of steps they ran (column *rollout steps*). Ours: "
                       f"{length.detail}." + so_far]
+    if one_step:
+        lines += ["", f"**Verdict on the one-step error ({axis}): {one_step.verdict}.** Paper (Sec. 5.4, Fig. 4's "
+                      f"upper row): {reference.get('one_step_summary', '—')}. Ours: {one_step.detail}; one-step MSE "
+                      "on the test trajectories' uncorrupted inputs (column *one-step MSE*)." + so_far]
     return lines
 
 

@@ -450,12 +450,12 @@ def test_where_monitors_stopped_rollouts_a_second_verdict_judges_how_long_they_r
         value = run.axes[axis]
         key = next(k for k in steps if abs(k - value) < 1e-12)
         metrics = {"test/rollout_mse": 0.3, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 1.0,
-                   "test/rollout_steps": steps[key][i % len(steps[key])]}
+                   "test/rollout_steps": steps[key][i % len(steps[key])], "test/one_step_mse": 1e-8}
         return RunRow(run, tracking.RunRecord(f"r{i}", run.name, "FINISHED", 0, {}, metrics))
 
     rows = [row(r, i) for i, r in enumerate(planned)]
     assert sorted(r.planned.axes[axis] for r in rows).count(3e-4) == 3
-    error, _, length = verdict_lines(axis, rows, ablation_reference(axis))
+    error, _, length, _, one_step = verdict_lines(axis, rows, ablation_reference(axis))
     assert "inconclusive (within the seed spread)" in error  # equal errors: no difference
     assert length.startswith(f"**Verdict on rollout length ({axis}): the paper's direction reproduced.**")
     assert "0.0003 vs 0.0: 1.8x (as the paper, beyond the band)" in length  # 170 steps on average against 92
@@ -463,4 +463,38 @@ def test_where_monitors_stopped_rollouts_a_second_verdict_judges_how_long_they_r
     unstopped = [RunRow(r.planned, tracking.RunRecord("u", r.planned.name, "FINISHED", 0, {},
                                                       {**r.record.metrics, "test/rollout_stopped": 0.0}))
                  for r in rows]
-    assert len(verdict_lines(axis, unstopped, ablation_reference(axis))) == 1  # nothing stopped: no second verdict
+    assert "inconclusive (within the seed spread)" in one_step  # equal one-step errors (the third verdict below)
+    lines = verdict_lines(axis, unstopped, ablation_reference(axis))
+    assert len(lines) == 3 and not any("rollout length" in line for line in lines)  # nothing stopped: no length verdict
+
+
+def test_where_the_paper_states_a_one_step_direction_a_verdict_judges_the_one_step_error() -> None:
+    # The noise sweep's one-step MSE in the cpu campaign (Intel Xeon family 6 model 207 and AMD EPYC runs): the
+    # default's three seeds 7.62e-9, 6.38e-9 and 7.52e-9 (band x1.2), ten times the noise 9.41e-8; no noise 7.34e-9.
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import verdict_lines
+
+    axis = "train.noise_std"
+    one_step = {0.0: [7.34e-9], 3e-4: [7.62e-9, 6.38e-9, 7.52e-9], 3e-3: [9.41e-8]}
+
+    def rows(values: dict[float, list[float]]) -> list[RunRow]:
+        out = []
+        for i, run in enumerate(load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")):
+            key = next(k for k in values if abs(k - run.axes[axis]) < 1e-12)
+            metrics = {"test/rollout_mse": 0.3, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 0.0,
+                       "test/one_step_mse": values[key][run.seed % len(values[key])]}
+            out.append(RunRow(run, tracking.RunRecord(f"r{i}", run.name, "FINISHED", 0, {}, metrics)))
+        return out
+
+    reference = ablation_reference(axis)
+    _, _, line = verdict_lines(axis, rows(one_step), reference)
+    assert line.startswith(f"**Verdict on the one-step error ({axis}): the paper's direction reproduced.**")
+    assert "0.0003 vs 0.003: 0.076x (as the paper, beyond the band)" in line and "band: x1.2 either way" in line
+    assert "vs 0.0:" not in line  # the paper states no one-step direction between no noise and the optimum
+    _, _, reversed_line = verdict_lines(axis, rows({**one_step, 3e-3: [1e-9]}), reference)
+    assert "not reproduced" in reversed_line
+    sharing = load_sweep(SWEEPS_DIR / "ablations" / "processor_sharing.toml")
+    shared_rows = [RunRow(run, tracking.RunRecord("s", run.name, "FINISHED", 0, {}, {
+        "test/rollout_mse": 0.3, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 0.0,
+        "test/one_step_mse": 1e-8 * (1 + run.seed)})) for run in sharing.plan("cpu")]
+    assert len(verdict_lines("model.shared_processor", shared_rows, ablation_reference("model.shared_processor"))) == 1
