@@ -46,11 +46,17 @@ RIGIDITY_WORDS = ("the RMS change of the body's pairwise distances since the rol
                   "RMS; GNS solid, ground truth dashed; 0 is perfectly rigid")
 PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot", "optimal transport"),
           ("mmd", "MMD"))
+# Where a health monitor stopped rollouts, the raw rollout MSE, OT and MMD cover different steps in different runs
+# (a rollout that collapsed early reads low); these panels then compare the runs like for like, as the verdicts
+# do (gns_bench/report/verdict.py).
+STOPPED_PANELS = (("vs_cv", "vs constant velocity, same steps"),
+                  ("rollout_steps", "rollout steps before a stop"))
+PANEL_LABELS = dict(PANELS + STOPPED_PANELS)
 # y-axis label of each panel: the quantity and its unit (OT is W2^2, squared Euclidean cost; MMD is squared
 # and dimensionless, a difference of mean kernel values)
 PANEL_UNITS = {"one_step_mse": f"MSE ({MSE_UNIT})", "rollout_mse": f"MSE ({MSE_UNIT})",
-               "ot": f"W₂² ({MSE_UNIT})", "mmd": "MMD² (dimensionless)"}
-
+               "ot": f"W₂² ({MSE_UNIT})", "mmd": "MMD² (dimensionless)",
+               "vs_cv": "GNS / constant velocity (ratio)", "rollout_steps": "steps"}
 
 def _spans_decades(data: np.ndarray) -> bool:
     """Log scale only pays off for positive data spread over more than a decade."""
@@ -77,18 +83,24 @@ def ablation_figure(axis: str, values: list[Any], stats: dict[str, list[tuple[fl
 
 def draw_ablation(axis: str, values: list[Any], stats: dict[str, list[tuple[float, float, int]]],
                   reference: dict[str, Any]) -> plt.Figure:
-    """One panel per metric against the axis value; error bars = sample std over seeds; the paper's default as a
-    dashed line. `stats[metric][i]` is (mean, std, seeds) for `values[i]`."""
+    """One panel per metric of `stats` (in its order; `PANEL_LABELS` names them) against the axis value; error
+    bars = sample std over seeds; the paper's default as a dashed line. `stats[metric][i]` is (mean, std, seeds)
+    for `values[i]`. Up to four panels make a row, as the paper's Fig. 4; more make two rows."""
     scale = reference.get("scale", "linear")
     numeric = scale != "category" and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
     x = np.asarray(values, dtype=float) if numeric else np.arange(len(values), dtype=float)
     name = axis.split(".")[-1]
     # each value is a configuration: coloured as its runs (`<name>=<value>-seed<s>`) are in the other figures
     colours = config_colours([f"{name}={v}" for v in values])
-    fig, axes = plt.subplots(1, len(PANELS), figsize=(3.0 * len(PANELS), 2.9))
-    for ax, (metric, label) in zip(axes, PANELS, strict=True):
-        mean = np.array([s[0] for s in stats[metric]])
-        std = np.array([s[1] for s in stats[metric]])
+    columns = len(stats) if len(stats) <= 4 else math.ceil(len(stats) / 2)
+    rows = math.ceil(len(stats) / columns)
+    fig, grid = plt.subplots(rows, columns, figsize=(3.0 * columns, 2.9 * rows), squeeze=False)
+    for ax in grid.flat[len(stats):]:
+        fig.delaxes(ax)
+    for ax, (metric, at_values) in zip(grid.flat[:len(stats)], stats.items(), strict=True):
+        label = PANEL_LABELS[metric]
+        mean = np.array([s[0] for s in at_values])
+        std = np.array([s[1] for s in at_values])
         ax.errorbar(x, mean, yerr=std, marker="", c="0.45", capsize=3, lw=1)
         ax.scatter(x, mean, s=24, c=[colours[f"{name}={v}"] for v in values], zorder=3, linewidths=0)
         if "default" in reference:

@@ -28,6 +28,7 @@ from gns_bench.report.cells import (
     machines,
     mean_cell,
     ratio,
+    relative_to_cv,
     run_id_cell,
     run_ids_cell,
     shared_cores_mark,
@@ -135,12 +136,25 @@ def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[s
 # Ablations (Sec. 5.4, Fig. 4; App. C.1)
 # ----------------------------------------------------------------------------------------------
 
+def ablation_stats(axis: str, values: list, rows: list[RunRow], like_for_like: bool) -> dict[str, list]:
+    """(mean, sample std, seeds) of each panel's measure at each value of the axis, in the figure's order: the
+    metrics of `figures.PANELS`, and with `like_for_like` (a monitor stopped rollouts, so the raw rollout MSE
+    covers different steps in different runs) `figures.STOPPED_PANELS` after the rollout MSE: each run's rollout
+    MSE over constant velocity's on the same steps, and its rollout steps before the stop."""
+    measures = {m: (lambda r, m=m: r.metric(m)) for m, _ in figures.PANELS}
+    if like_for_like:
+        measures = {"one_step_mse": measures["one_step_mse"], "rollout_mse": measures["rollout_mse"],
+                    "vs_cv": relative_to_cv, "rollout_steps": lambda r: r.metric("rollout_steps"),
+                    "ot": measures["ot"], "mmd": measures["mmd"]}
+    return {m: [mean_std([measure(r) for r in rows if r.planned.axes[axis] == v]) for v in values]
+            for m, measure in measures.items()}
+
+
 def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compare: bool = True) -> list[str]:
     lines = []
     for axis in sweep.axes:
         values = list(dict.fromkeys(r.planned.axes[axis] for r in rows))
-        stats = {m: [mean_std([r.metric(m) for r in rows if r.planned.axes[axis] == v]) for v in values]
-                 for m, _ in figures.PANELS}
+        stats = ablation_stats(axis, values, rows, like_for_like=compare and any_stopped(rows))
         reference = ablation_reference(axis)
         name = axis.split(".")[-1]
         figure = figures.ablation_figure(axis, values, stats, reference, out_dir / f"ablation_{name}.png")
@@ -150,7 +164,10 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
         if any_stopped(rows):
             lines += ["A health monitor stopped some rollouts, so rollout MSE, OT and MMD cover different steps in "
                       "different runs (column *rollout steps*). *vs constant velocity* divides the rollout MSE by "
-                      "constant velocity's over the same steps: that column compares runs like for like.", ""]
+                      "constant velocity's over the same steps: that column compares runs like for like"
+                      + (", and so do the figure's panels *vs constant velocity, same steps* (there the mean over "
+                         "seeds of each run's ratio; in the table the ratio of the means) and *rollout steps before "
+                         "a stop*." if compare else "."), ""]
         lines += ["| value | seeds | one-step MSE | rollout MSE | OT | MMD | rollout steps | vs constant velocity |",
                   "|---|---|---|---|---|---|---|---|"]
         for i, value in enumerate(values):

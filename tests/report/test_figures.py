@@ -151,3 +151,16 @@ def test_ablation_panels_name_their_units() -> None:
     assert [ax.get_ylabel() for ax in fig.axes][:2] == [f"MSE ({MSE_UNIT})"] * 2
     assert all(ax.get_ylabel() for ax in fig.axes)
     plt.close(fig)
+
+
+def test_an_ablation_with_stopped_rollouts_draws_its_like_for_like_panels_in_two_rows() -> None:
+    stats = {m: [(1e-3 * (i + 1), 1e-4, 2), (1e-2 * (i + 1), 1e-3, 2)]
+             for i, (m, _) in enumerate(figures.PANELS[:2] + figures.STOPPED_PANELS + figures.PANELS[2:])}
+    fig = figures.draw_ablation("train.noise_std", [1e-4, 3e-4], stats, {"scale": "log", "default": 3e-4})
+    assert [ax.get_title() for ax in fig.axes] == [figures.PANEL_LABELS[m] for m in stats]
+    assert len({ax.get_position().y0 for ax in fig.axes}) == 2  # six panels: two rows of three
+    for ax, (metric, at_values) in zip(fig.axes, stats.items(), strict=True):
+        assert ax.get_ylabel() == figures.PANEL_UNITS[metric]
+        (errorbar,) = ax.containers
+        np.testing.assert_allclose(errorbar.lines[0].get_ydata(), [s[0] for s in at_values])
+    plt.close(fig)

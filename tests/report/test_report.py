@@ -498,3 +498,30 @@ def test_where_the_paper_states_a_one_step_direction_a_verdict_judges_the_one_st
         "test/rollout_mse": 0.3, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 0.0,
         "test/one_step_mse": 1e-8 * (1 + run.seed)})) for run in sharing.plan("cpu")]
     assert len(verdict_lines("model.shared_processor", shared_rows, ablation_reference("model.shared_processor"))) == 1
+
+
+def test_where_monitors_stopped_rollouts_the_ablation_figure_adds_like_for_like_panels() -> None:
+    # the raw rollout MSE of a run whose rollouts collapsed early reads low (noise 0 in the cpu campaign: 0.00455
+    # over 92 steps against the default's 0.0131 over 170); its ratio to constant velocity does not
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.figures import PANELS, STOPPED_PANELS
+    from gns_bench.report.report import ablation_stats
+
+    axis = "train.noise_std"
+    planned = [r for r in load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")
+               if r.axes[axis] in (0.0, 3e-4)]
+
+    def row(run, stopped: float) -> RunRow:
+        zero = run.axes[axis] == 0.0
+        metrics = {"test/rollout_mse": 0.00455 if zero else 0.0131, "test/one_step_mse": 7e-9, "test/ot": 0.01,
+                   "test/mmd": 0.05, "test/baseline_cv_same_steps_mse": 0.0133 if zero else 0.0413,
+                   "test/rollout_steps": 92.0 if zero else 170.0, "test/rollout_stopped": stopped}
+        return RunRow(run, tracking.RunRecord("r", run.name, "FINISHED", 0, {}, metrics))
+
+    rows = [row(r, 0.8) for r in planned]
+    stats = ablation_stats(axis, [0.0, 3e-4], rows, like_for_like=True)
+    assert list(stats) == [m for m, _ in PANELS[:2] + STOPPED_PANELS + PANELS[2:]]
+    assert stats["rollout_mse"][0][0] < stats["rollout_mse"][1][0]  # the raw error favours the early collapse
+    assert [s[0] for s in stats["vs_cv"]] == pytest.approx([0.00455 / 0.0133, 0.0131 / 0.0413])
+    assert [s[0] for s in stats["rollout_steps"]] == [92.0, 170.0] and stats["rollout_steps"][1][2] == 3
+    assert list(ablation_stats(axis, [0.0, 3e-4], rows, like_for_like=False)) == [m for m, _ in PANELS]
