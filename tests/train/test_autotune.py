@@ -21,6 +21,22 @@ def test_pick_counts_compile_time_against_the_steps_left() -> None:
     assert autotune.pick({"fp32": 0.3, "bf16": 0.5}, 0.0, 10) == ("fp32", False)
 
 
+def test_one_stalled_step_does_not_decide_the_probe() -> None:
+    # a step of 0.5 s, one of which stalled for 170 s (the campaign paused with SIGSTOP mid-probe), after a
+    # warm-up whose first step compiled for 40 s
+    durations = iter([40.5, 0.5, 0.5] + [0.5, 0.5, 170.5, 0.5, 0.5, 0.5, 0.5, 0.5])
+    now = [0.0]
+
+    def step() -> None:
+        now[0] += next(durations)
+
+    seconds, compiling = autotune._time(step, clock=lambda: now[0])
+    assert seconds == pytest.approx(0.5) and compiling == pytest.approx(40.0)
+    assert autotune.TIMED_STEPS == 8  # the durations above cover the warm-up and every timed step
+    with pytest.raises(StopIteration):
+        step()
+
+
 def test_auto_probes_once_then_reads_its_cache_and_a_resume_keeps_the_choice(
         tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
