@@ -58,6 +58,7 @@ PANEL_UNITS = {"one_step_mse": f"MSE ({MSE_UNIT})", "rollout_mse": f"MSE ({MSE_U
                "ot": f"W₂² ({MSE_UNIT})", "mmd": "MMD² (dimensionless)",
                "vs_cv": "GNS / constant velocity (ratio)", "rollout_steps": "steps"}
 
+
 def _spans_decades(data: np.ndarray) -> bool:
     """Log scale only pays off for positive data spread over more than a decade."""
     finite = data[np.isfinite(data)]
