@@ -52,6 +52,12 @@ PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot
 STOPPED_PANELS = (("vs_cv", "vs constant velocity, same steps"),
                   ("rollout_steps", "rollout steps before a stop"))
 PANEL_LABELS = dict(PANELS + STOPPED_PANELS)
+
+
+def ablation_panels(stopped: bool) -> tuple[tuple[str, str], ...]:
+    """The ablation figure's panels in order: `PANELS`, with `STOPPED_PANELS` after the raw rollout MSE where a
+    monitor stopped rollouts."""
+    return PANELS[:2] + STOPPED_PANELS + PANELS[2:] if stopped else PANELS
 # y-axis label of each panel: the quantity and its unit (OT is W2^2, squared Euclidean cost; MMD is squared
 # and dimensionless, a difference of mean kernel values)
 PANEL_UNITS = {"one_step_mse": f"MSE ({MSE_UNIT})", "rollout_mse": f"MSE ({MSE_UNIT})",

@@ -141,13 +141,11 @@ def ablation_stats(axis: str, values: list, rows: list[RunRow], like_for_like: b
     metrics of `figures.PANELS`, and with `like_for_like` (a monitor stopped rollouts, so the raw rollout MSE
     covers different steps in different runs) `figures.STOPPED_PANELS` after the rollout MSE: each run's rollout
     MSE over constant velocity's on the same steps, and its rollout steps before the stop."""
-    measures = {m: (lambda r, m=m: r.metric(m)) for m, _ in figures.PANELS}
-    if like_for_like:
-        measures = {"one_step_mse": measures["one_step_mse"], "rollout_mse": measures["rollout_mse"],
-                    "vs_cv": relative_to_cv, "rollout_steps": lambda r: r.metric("rollout_steps"),
-                    "ot": measures["ot"], "mmd": measures["mmd"]}
-    return {m: [mean_std([measure(r) for r in rows if r.planned.axes[axis] == v]) for v in values]
-            for m, measure in measures.items()}
+    def measure(row: RunRow, metric: str) -> float:
+        return relative_to_cv(row) if metric == "vs_cv" else row.metric(metric)
+
+    return {m: [mean_std([measure(r, m) for r in rows if r.planned.axes[axis] == v]) for v in values]
+            for m, _ in figures.ablation_panels(like_for_like)}
 
 
 def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compare: bool = True) -> list[str]:
