@@ -57,8 +57,24 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
     assert pick["precision"] in ("fp32", "bf16") and set(pick["probe_step_s"]) == {"fp32", "bf16"}
     assert "auto within 5% of the fastest variant" in readme and f"auto picked {pick['precision']}" in readme
     assert "waterdrop rollout step <= 25 ms (bf16" in readme and "its matmuls alone need" in readme
+    rates = saved["steadiness"]  # the square-GEMM rate again at the end, beside the start's the rows were judged by
+    assert set(rates) == {"fp32", "bf16"} and all(r["end"] > 0 for r in rates.values())
+    assert all(rates[row["precision"]]["start"] == row["gemm_peak_gflops"] for row in saved["train"])
+    assert "the square-GEMM rate at its start and end, fp32" in readme
     with Image.open(tmp_path / "bench_scaling.png") as image:
         assert image.size[0] > 300
+
+
+def test_a_run_whose_machine_slowed_down_says_so_and_a_steady_one_says_it_held() -> None:
+    from gns_bench.bench.report import steadiness
+
+    steady = {"steadiness": {"fp32": {"start": 263.0, "end": 250.0}, "bf16": {"start": 1000.0, "end": 1100.0}}}
+    assert steadiness(steady).startswith("The machine held its speed through the run")
+    assert "fp32 263 then 250 GFLOP/s, bf16 1000 then 1100 GFLOP/s" in steadiness(steady)
+    slowed = {"steadiness": {"fp32": {"start": 263.0, "end": 250.0}, "bf16": {"start": 2368.0, "end": 679.0}}}
+    assert steadiness(slowed).startswith("**The machine's speed changed during this run**")
+    assert "71% apart" in steadiness(slowed)  # the larger change of the two: 679 / 2368 - 1
+    assert steadiness({"train": []}) == ""  # a run from before the check says nothing rather than guess
 
 
 def test_compiled_rollout_steps_are_timed_after_the_eager_ones_and_judged_against_the_target() -> None:

@@ -23,6 +23,8 @@ PAPER_SEARCH_SHARE = (0.558, 0.857)
 # Issue #22: the paper's model on WATERDROP (1,000 particles) faster a rollout step than the paper's V100
 # (App. C.6: 25-59 ms a step on its 2D domains), bf16, on these 2 cores.
 TARGET_ROLLOUT_DOMAIN, TARGET_ROLLOUT_S = "waterdrop", 0.025
+# The square-GEMM rate at a run's end may differ this much from its start before the run is called unsteady.
+STEADY_TOLERANCE = 0.15
 
 
 def _table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> list[str]:
@@ -162,13 +164,31 @@ def _gpu_fill(results: dict[str, Any]) -> str:
             "graphs spread thin; the GEMM-rate targets were set for 2-core CPUs.")
 
 
+def steadiness(results: dict[str, Any]) -> str:
+    """Whether the machine's speed held through the run: the square-GEMM rate at its start and end
+    (`run.measure_steadiness`). Empty for runs from before the check."""
+    rates = results.get("steadiness")
+    if not rates:
+        return ""
+    change = max(abs(r["end"] / r["start"] - 1) for r in rates.values())
+    measured = ", ".join(f"{p} {r['start']:.0f} then {r['end']:.0f} GFLOP/s" for p, r in rates.items())
+    if change <= STEADY_TOLERANCE:
+        return f"The machine held its speed through the run: the square-GEMM rate at its start and end, {measured}."
+    return (f"**The machine's speed changed during this run** (a shared host): the square-GEMM rate at its start "
+            f"and end, {measured}, {change:.0%} apart. Times taken minutes apart (the sections below, and the GEMM "
+            "rates the training step is judged against) carry that change; ratios of numbers measured side by side "
+            "(ours against the PyG baseline) less so.")
+
+
 def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
     env = results["environment"]
     lines = ["# gns-bench benchmark", "",
              f"Measured in one run on **{env['hardware']}** (device `{env['device']}`, torch {env['torch']}, "
              f"{env['threads']} threads). Synthetic particle clouds at the paper's density (~15 neighbours "
-             "within R); the paper's model (M = 10, latent 128, MLPs 2 x 128).", "",
-             "## Targets", ""]
+             "within R); the paper's model (M = 10, latent 128, MLPs 2 x 128).", ""]
+    if steadiness(results):
+        lines += [steadiness(results), ""]
+    lines += ["## Targets", ""]
     lines += targets_table(results)
     lines += ["", why_missed(results)]
     lines += ["", "## Training step (forward + backward + Adam, one graph)", ""]
@@ -279,7 +299,10 @@ def write_bench_index(root: Path) -> Path:
         quick = " (quick sizes)" if results.get("settings", {}).get("repeats", 5) < 5 else ""
         lines += [f"## {env['hardware']}{quick}", "",
                   f"[{folder}/]({folder}/README.md): device `{env['device']}`, torch {env['torch']}, "
-                  f"{env['threads']} threads.", "", *targets_table(results), "", *_extra_checks(root / folder)]
+                  f"{env['threads']} threads.", "", *targets_table(results), ""]
+        if steadiness(results):
+            lines += [steadiness(results), ""]
+        lines += _extra_checks(root / folder)
     if not found:
         lines.append(f"No benchmark yet: run `gns-bench bench` (it writes {root}/<machine>/).")
     path = root / "README.md"

@@ -104,6 +104,19 @@ def measure_training(settings: BenchSettings, device: torch.device) -> list[dict
     return rows
 
 
+def measure_steadiness(train: list[dict[str, Any]], settings: BenchSettings, device: torch.device
+                       ) -> dict[str, dict[str, float]]:
+    """The square-GEMM rate measured again at the end of the run, beside the one the training rows were judged
+    against at its start. A shared host's speed differs between sessions (an Intel Xeon of one CPU model measured
+    2,368 bf16 GFLOP/s in one session and 679 in another) and can drift within one; ratios of numbers taken
+    minutes apart are only as good as it holds."""
+    start = {row["precision"]: row["gemm_peak_gflops"] for row in train}
+    return {precision: {"start": start[precision],
+                        "end": gemm_peak_gflops(torch.float32 if precision == "fp32" else torch.bfloat16, device,
+                                                settings.gemm_sizes, settings.repeats)}
+            for precision in ("fp32", "bf16")}
+
+
 def measure_autotune(settings: BenchSettings, device: torch.device, steps: int = 20_000) -> dict[str, Any]:
     """What `train.precision = "auto"` and `train.compile = "auto"` pick for the bench's training scene (its own
     short probe, no cache), to set against the variants the bench times at length."""
@@ -221,6 +234,7 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     results["inference"] = measure_inference(settings, device)
     print("scaling in particle count...", flush=True)
     results["scaling"] = measure_scaling(settings)
+    results["steadiness"] = measure_steadiness(results["train"], settings, device)
     (out_dir / "bench.json").write_text(json.dumps(results, indent=2) + "\n")
     paths = write_bench_report(results, out_dir)
     if log_to_mlflow:
