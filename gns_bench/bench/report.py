@@ -174,10 +174,10 @@ def steadiness(results: dict[str, Any]) -> str:
     measured = ", ".join(f"{p} {r['start']:.0f} then {r['end']:.0f} GFLOP/s" for p, r in rates.items())
     if change <= STEADY_TOLERANCE:
         return f"The machine held its speed through the run: the square-GEMM rate at its start and end, {measured}."
-    return (f"**The machine's speed changed during this run** (a shared host): the square-GEMM rate at its start "
-            f"and end, {measured}, {change:.0%} apart. Times taken minutes apart (the sections below, and the GEMM "
-            "rates the training step is judged against) carry that change; ratios of numbers measured side by side "
-            "(ours against the PyG baseline) less so.")
+    return (f"**The machine's speed changed during this run** (a shared host, or a throttled chip): the "
+            f"square-GEMM rate at its start and end, {measured}, {change:.0%} apart. Times taken minutes apart (the "
+            "sections below, and the GEMM rates the training step is judged against) carry that change; ratios of "
+            "numbers measured side by side (ours against the PyG baseline) less so.")
 
 
 def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
@@ -186,8 +186,8 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
              f"Measured in one run on **{env['hardware']}** (device `{env['device']}`, torch {env['torch']}, "
              f"{env['threads']} threads). Synthetic particle clouds at the paper's density (~15 neighbours "
              "within R); the paper's model (M = 10, latent 128, MLPs 2 x 128).", ""]
-    if steadiness(results):
-        lines += [steadiness(results), ""]
+    if note := steadiness(results):
+        lines += [note, ""]
     lines += ["## Targets", ""]
     lines += targets_table(results)
     lines += ["", why_missed(results)]
@@ -300,8 +300,8 @@ def write_bench_index(root: Path) -> Path:
         lines += [f"## {env['hardware']}{quick}", "",
                   f"[{folder}/]({folder}/README.md): device `{env['device']}`, torch {env['torch']}, "
                   f"{env['threads']} threads.", "", *targets_table(results), ""]
-        if steadiness(results):
-            lines += [steadiness(results), ""]
+        if note := steadiness(results):
+            lines += [note, ""]
         lines += _extra_checks(root / folder)
     if not found:
         lines.append(f"No benchmark yet: run `gns-bench bench` (it writes {root}/<machine>/).")
