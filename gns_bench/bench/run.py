@@ -38,6 +38,10 @@ INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 200
                      ("water-3d-s", 3, 5800), ("water-3d", 3, 13000), ("goop-3d", 3, 14000), ("sand-3d", 3, 20000)]
 
 
+# The dtype a precision's matmuls run in (bf16 autocast multiplies in bfloat16), for the GEMM rates measured
+# beside each timing.
+GEMM_DTYPE = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
 OURS = "gns-bench (split first edge layer)"
 BASELINE = "PyG MessagePassing, concatenated inputs"
 
@@ -80,12 +84,11 @@ def domain_radius(domain: str, dim: int) -> float:
 def measure_training(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
     scene = synthetic_scene(settings.train_particles, 2)
     rows = []
-    peaks = {p: gemm_peak_gflops(torch.float32 if p == "fp32" else torch.bfloat16, device, settings.gemm_sizes,
-                                 settings.repeats) for p in ("fp32", "bf16")}
+    peaks = {p: gemm_peak_gflops(dtype, device, settings.gemm_sizes, settings.repeats)
+             for p, dtype in GEMM_DTYPE.items()}
     model = build_model(ModelConfig(), scene, device)
     edges = int(model.build_graph(scene.window[:, -1].to(device)).shape[1])
-    skinny = {p: skinny_gemm_gflops(edges, 128, torch.float32 if p == "fp32" else torch.bfloat16, device)
-              for p in ("fp32", "bf16")}
+    skinny = {p: skinny_gemm_gflops(edges, 128, dtype, device) for p, dtype in GEMM_DTYPE.items()}
     flops = 3 * forward_flops(model, scene.window.shape[0], edges)  # forward + backward ~ 3 x forward
     variants = [(OURS, False, lambda: build_model(ModelConfig(), scene, device)),
                 (BASELINE, False, lambda: concatenated_baseline(build_model(ModelConfig(), scene, device)))]
@@ -112,9 +115,8 @@ def measure_steadiness(train: list[dict[str, Any]], settings: BenchSettings, dev
     minutes apart are only as good as it holds."""
     start = {row["precision"]: row["gemm_peak_gflops"] for row in train}
     return {precision: {"start": start[precision],
-                        "end": gemm_peak_gflops(torch.float32 if precision == "fp32" else torch.bfloat16, device,
-                                                settings.gemm_sizes, settings.repeats)}
-            for precision in ("fp32", "bf16")}
+                        "end": gemm_peak_gflops(dtype, device, settings.gemm_sizes, settings.repeats)}
+            for precision, dtype in GEMM_DTYPE.items()}
 
 
 def measure_autotune(settings: BenchSettings, device: torch.device, steps: int = 20_000) -> dict[str, Any]:
@@ -151,7 +153,7 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
         model = build_model(ModelConfig(), scene, device)
         for precision in ("fp32", "bf16"):
             b = rollout_breakdown(model, scene, device, precision, settings.repeats, compiled)
-            dtype = torch.float32 if precision == "fp32" else torch.bfloat16
+            dtype = GEMM_DTYPE[precision]
             if (b.num_edges, precision) not in skinny:
                 skinny[b.num_edges, precision] = skinny_gemm_gflops(b.num_edges, 128, dtype, device)
             flops = forward_flops(model, particles, b.num_edges)
