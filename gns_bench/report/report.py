@@ -228,6 +228,11 @@ def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
         lines += ["", f"**Verdict on the one-step error ({axis}): {one_step.verdict}.** Paper (Sec. 5.4, Fig. 4's "
                       f"upper row): {reference.get('one_step_summary', '—')}. Ours: {one_step.detail}; one-step MSE "
                       "on the test trajectories' uncorrupted inputs (column *one-step MSE*)." + so_far]
+    if reference.get("no_effect"):
+        lines += ["", "*How strong a test this is:* a finding of little difference counts as reproduced whenever "
+                      "every gap stays inside the band of the default's seed spread, so it excludes only effects "
+                      "larger than that band; a direction (Sec. 5.4's major axes) has to clear the same band to "
+                      "count. More seeds or a longer budget narrow the band and make this test harder."]
     return lines
 
 

@@ -525,3 +525,29 @@ def test_where_monitors_stopped_rollouts_the_ablation_figure_adds_like_for_like_
     assert [s[0] for s in stats["vs_cv"]] == pytest.approx([0.00455 / 0.0133, 0.0131 / 0.0413])
     assert [s[0] for s in stats["rollout_steps"]] == [92.0, 170.0] and stats["rollout_steps"][1][2] == 3
     assert list(ablation_stats(axis, [0.0, 3e-4], rows, like_for_like=False)) == [m for m, _ in PANELS]
+
+
+def test_a_little_difference_verdict_says_it_excludes_only_effects_larger_than_the_band() -> None:
+    # App. C.1's MLP depth in the cpu campaign: depth 1 at 0.91x the default's error, inside a x1.6 band, counts as
+    # reproduced; a reader must learn that this rules out only larger effects, which a direction must clear.
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import verdict_lines
+
+    def rows(axis: str, sweep: str, error: dict) -> list[RunRow]:
+        out = []
+        for i, run in enumerate(load_sweep(SWEEPS_DIR / "ablations" / f"{sweep}.toml").plan("cpu")):
+            ratio = error.get(run.axes[axis], [0.32, 0.28, 0.36][run.seed % 3])
+            metrics = {"test/rollout_mse": ratio, "test/baseline_cv_same_steps_mse": 1.0, "test/rollout_stopped": 0.0}
+            out.append(RunRow(run, tracking.RunRecord(f"r{i}", run.name, "FINISHED", 0, {}, metrics)))
+        return out
+
+    depth = "model.mlp_hidden_layers"
+    lines = verdict_lines(depth, rows(depth, "mlp_depth", {1: 0.29}), ablation_reference(depth))
+    assert "the paper's direction reproduced" in lines[0]
+    assert any("excludes only effects larger than that band" in line for line in lines)
+    far = verdict_lines(depth, rows(depth, "mlp_depth", {1: 3.0}), ablation_reference(depth))
+    assert "not reproduced" in far[0]  # beyond the band: the claim of little difference fails
+    steps = "model.message_passing_steps"
+    directional = verdict_lines(steps, rows(steps, "message_passing_steps", {1: 0.8, 5: 0.4}),
+                                ablation_reference(steps))
+    assert not any("excludes only effects" in line for line in directional)
