@@ -245,10 +245,11 @@ def _rollouts(row: RunRow | None, workdir: Path) -> list[RolloutResult]:
     return load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", workdir)
 
 
-def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> Path | None:
-    """BOXBATH: the cube's drift (mean over test trajectories) for each model and the ground truth."""
+def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> list[str]:
+    """BOXBATH: the cube's drift (mean over test trajectories) for each model and the ground truth. Returns the
+    names of the models drawn (none: no figure written)."""
     fig, ax = plt.subplots(figsize=(5.6, 3.6), layout="constrained")
-    drawn, truth = False, None
+    drawn, truth = [], None
     for name, rollouts in models.items():
         curves = [c for r in rollouts if (c := figures.rigidity_curves(r, RIGID_PARTICLE_TYPE)) is not None]
         if not curves:
@@ -257,10 +258,10 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> P
         model = np.nanmean([c[0][:length] for c in curves], axis=0)
         ax.plot(np.arange(length), model, color=config_colour(name), label=ARCHITECTURE_NAMES.get(name, name))
         truth = truth if truth is not None else np.nanmean([c[1][:length] for c in curves], axis=0)
-        drawn = True
+        drawn.append(ARCHITECTURE_NAMES.get(name, name))
     if not drawn:
         plt.close(fig)
-        return None
+        return []
     ax.plot(np.arange(len(truth)), truth, color="k", ls="--", label="ground truth")
     ax.set_xlabel(STEP_LABEL)
     ax.set_ylabel("rigidity drift (relative)")
@@ -269,12 +270,14 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> P
     ax.grid(alpha=0.3)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
-    return path
+    return drawn
 
 
 # Where the paper shows a baseline failing (Sec. 5.5): CConv's cube losing its shape on BOXBATH and its goop
 # blowing apart on GOOP. There every model's rollout of one test trajectory is drawn side by side.
 FAILURE_DOMAINS = ("boxbath", "goop")
+MISSING_ROLLOUTS = ("its run's rollouts are not in this MLflow store: a run known only from its committed summary "
+                    "keeps its numbers, not its artifacts")
 FAILURE_WORDS = {"boxbath": "CConv lets the cube lose its shape, and DPI-Net keeps it rigid only by construction",
                  "goop": "CConv's goop blows apart"}
 
@@ -290,15 +293,19 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
         if not here:
             continue
+        best = {"gns": best_run(here[0][2]), **{architecture_of(sweep): best_run(rows) for sweep, rows, _ in here}}
         with tempfile.TemporaryDirectory() as tmp:
-            models = {"gns": _rollouts(best_run(here[0][2]), Path(tmp) / "gns")}
-            for sweep, rows, _ in here:
-                models[architecture_of(sweep)] = _rollouts(best_run(rows), Path(tmp) / sweep.name)
+            models = {name: _rollouts(row, Path(tmp) / name) for name, row in best.items()}
         record = (previous or {}).get(domain, {})
         if any(models.values()):  # drawn afresh; else the last report's pictures stand
             record = {}
+            # a model without rollouts here is left out of the pictures, and the report says why
+            missing = {ARCHITECTURE_NAMES[name]: "not run yet" if best[name] is None else MISSING_ROLLOUTS
+                       for name, rollouts in models.items() if not rollouts}
+            if missing:
+                record["missing"] = missing
             if domain == "boxbath":
-                record["rigidity"] = rigidity_comparison(models, out_dir / "boxbath_rigidity.png") is not None
+                record["rigidity"] = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
             shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
                      if rollouts and rollouts[0].predicted.shape[0]]
             if len(shown) > 1 and shown[0][0] == ARCHITECTURE_NAMES["gns"]:
@@ -311,6 +318,9 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         name = domain_reference(domain).name
         lines += [f"## {name}: the failure the paper shows", "",
                   f"In the paper (Sec. 5.5) {FAILURE_WORDS[domain]}.", ""]
+        if record.get("missing"):
+            lines += ["Not drawn: " + "; ".join(f"{name} ({why})" for name, why in record["missing"].items()) + ".",
+                      ""]
         if record.get("strip") and (out_dir / f"{domain}_strip.png").is_file():
             models_drawn = ", ".join(record["strip"])
             lines += [f"Test trajectory 0, the ground truth above each model's rollout ({models_drawn}; each "
@@ -319,7 +329,9 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         if record.get("rigidity") and (out_dir / "boxbath_rigidity.png").is_file():
             lines += ["The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
                       "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
-                      "built in (a rigid projection and root nodes), CConv neither.", "",
+                      "built in (a rigid projection and root nodes), CConv neither."
+                      + (f" Drawn: {', '.join(record['rigidity'])}." if isinstance(record["rigidity"], list) else ""),
+                      "",
                       "![rigidity](boxbath_rigidity.png)", ""]
     return lines, drawn
 

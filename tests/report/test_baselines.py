@@ -112,3 +112,30 @@ def test_the_failure_the_paper_shows_is_drawn_model_beside_model(tmp_path: Path,
     # a domain where the paper shows no failure gets no strip
     sand = load_sweep(SWEEPS_DIR / "baselines" / "cconv-sand.toml")
     assert baselines.failure_section([(sand, ["cconv run"], ["gns run"])], tmp_path, previous=None) == ([], {})
+
+
+def _swelling_cube(steps: int) -> RolloutResult:
+    """BOXBATH-like: a rigid cube (type 0) that the model swells by 1% a step while the truth holds it."""
+    axis = np.arange(4) * 0.02
+    cube = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + 0.4
+    centre = cube.mean(0)
+    truth = np.stack([cube] * steps).astype(np.float32)
+    predicted = np.stack([(cube - centre) * (1 + 0.01 * t) + centre for t in range(1, steps + 1)]).astype(np.float32)
+    return RolloutResult(predicted, truth, np.stack([cube] * 3), np.zeros(len(cube), int))
+
+
+def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    # The GNS's BOXBATH run is known only from its committed summary (numbers, no artifacts); CConv's is here.
+    cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
+    rollouts = {"cconv run": [_swelling_cube(20)]}
+    monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row, []))
+    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], ["gns run"])], tmp_path, previous=None)
+    assert drawn == {"boxbath": {"missing": {"GNS": baselines.MISSING_ROLLOUTS}, "rigidity": ["CConv"]}}
+    assert f"Not drawn: GNS ({baselines.MISSING_ROLLOUTS})." in lines
+    assert any(line.endswith("CConv neither. Drawn: CConv.") for line in lines)
+    assert (tmp_path / "boxbath_rigidity.png").is_file() and not (tmp_path / "boxbath_strip.png").exists()
+    # a GNS that has not run at all is said to be so
+    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [])], tmp_path, previous=None)
+    assert drawn["boxbath"]["missing"] == {"GNS": "not run yet"}
