@@ -7,6 +7,7 @@ goop blowing apart)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 from dataclasses import dataclass
@@ -18,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gns_bench.config import ARCHITECTURE_NAMES  # noqa: E402
+from gns_bench.config import ARCHITECTURE_NAMES, StressConfig  # noqa: E402
 from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
 from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
@@ -40,9 +41,10 @@ from gns_bench.report.collect import (  # noqa: E402
     domain_sweeps,
     load_rollouts,
     mean_std,
+    stress_sweeps,
 )
 from gns_bench.report.reference import domain_reference  # noqa: E402
-from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep  # noqa: E402
+from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
 HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
@@ -53,6 +55,34 @@ DPI = 80
 
 def baseline_sweeps() -> list[SweepSpec]:
     return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "baseline"]
+
+
+
+def same_model(a: PlannedRun, b: PlannedRun) -> bool:
+    """Whether two planned runs train the same model on the same data: equal configs but for [stress] (a stress
+    sweep retrains a domain sweep's model when that run's checkpoint is gone, `sweep/runner.py`)."""
+    unstressed = [dataclasses.replace(r.config, stress=StressConfig()) for r in (a, b)]
+    return (unstressed[0] == unstressed[1] and (a.training_domain, a.dataset_tier, a.dataset_seed, a.eval_dataset_tier)
+            == (b.training_domain, b.dataset_tier, b.dataset_seed, b.eval_dataset_tier))
+
+
+def gns_rollouts(gns: RunRow | None, stand_ins: list[RunRow], workdir: Path) -> tuple[list[RolloutResult], str]:
+    """The GNS's rollouts for the pictures, and where they came from: the domain sweep's run, or, when its
+    artifacts are gone (a run known only from its committed summary), a finished stress-sweep run that trained the
+    same model again (`same_model`), named in the report beside its own rollout MSE ('' when the domain run's own,
+    or none)."""
+    rollouts = _rollouts(gns, workdir / "gns")
+    if rollouts or gns is None:
+        return rollouts, ""
+    for row in stand_ins:
+        if row.ok and row.tag("stress_tested") != "here" and same_model(row.planned, gns.planned):
+            rollouts = _rollouts(row, workdir / row.planned.sweep)
+            if rollouts:
+                return rollouts, (f"the domain run's rollouts are gone with the MLflow store that made it, so these "
+                                  f"are of {row.planned.sweep}/{row.planned.name} (`{row.run_id}`), which trained "
+                                  f"the same config again: rollout MSE {fmt(row.metric('rollout_mse'))} against the "
+                                  f"domain run's {fmt(gns.metric('rollout_mse'))}")
+    return [], ""
 
 
 def architecture_of(sweep: SweepSpec) -> str:
@@ -283,11 +313,12 @@ FAILURE_WORDS = {"boxbath": "CConv lets the cube lose its shape, and DPI-Net kee
 
 
 def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path,
-                    previous: dict | None) -> tuple[list[str], dict]:
+                    previous: dict | None, stand_ins: dict[str, list[RunRow]] | None = None) -> tuple[list[str], dict]:
     """For each of `FAILURE_DOMAINS` with runs: test trajectory 0 as the GNS and each baseline's best run rolled
     it out (`<domain>_strip.png`), and on BOXBATH the cube's rigidity drift of every model. Returns the lines
     and what was drawn, which the summary keeps: when MLflow no longer holds the rollouts, the pictures the
-    last report drew stand (`previous`, that summary's record)."""
+    last report drew stand (`previous`, that summary's record). `stand_ins`: per domain, the stress sweeps' runs
+    whose rollouts stand in for the GNS's when its own are gone (`gns_rollouts`)."""
     lines, drawn = [], {}
     for domain in FAILURE_DOMAINS:
         here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
@@ -295,10 +326,12 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             continue
         best = {"gns": best_run(here[0][2]), **{architecture_of(sweep): best_run(rows) for sweep, rows, _ in here}}
         with tempfile.TemporaryDirectory() as tmp:
-            models = {name: _rollouts(row, Path(tmp) / name) for name, row in best.items()}
+            models = {name: _rollouts(row, Path(tmp) / name) for name, row in best.items() if name != "gns"}
+            models = {"gns": (found := gns_rollouts(best["gns"], (stand_ins or {}).get(domain, []), Path(tmp)))[0],
+                      **models}
         record = (previous or {}).get(domain, {})
         if any(models.values()):  # drawn afresh; else the last report's pictures stand
-            record = {}
+            record = {"gns_from": found[1]} if found[1] else {}
             # a model without rollouts here is left out of the pictures, and the report says why
             missing = {ARCHITECTURE_NAMES[name]: "not run yet" if best[name] is None else MISSING_ROLLOUTS
                        for name, rollouts in models.items() if not rollouts}
@@ -318,6 +351,8 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         name = domain_reference(domain).name
         lines += [f"## {name}: the failure the paper shows", "",
                   f"In the paper (Sec. 5.5) {FAILURE_WORDS[domain]}.", ""]
+        if record.get("gns_from"):
+            lines += [f"The GNS in these pictures: {record['gns_from']}.", ""]
         if record.get("missing"):
             lines += ["Not drawn: " + "; ".join(f"{name} ({why})" for name, why in record["missing"].items()) + ".",
                       ""]
@@ -352,7 +387,10 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
              *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir)]
-    failures, drawn = failure_section(collected, out_dir, read_summary_extras(out_dir / SUMMARY_FILE).get("failures"))
+    stand_ins = {d: [r for s in stress_sweeps() if s.domain == d for r in collect(s, tier, reports_root)]
+                 for d in FAILURE_DOMAINS}
+    failures, drawn = failure_section(collected, out_dir, read_summary_extras(out_dir / SUMMARY_FILE).get("failures"),
+                                      stand_ins)
     lines += failures
     write_run_summary(out_dir / SUMMARY_FILE, "baselines", tier, [], {"failures": drawn} if drawn else {},
                       note="written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow "

@@ -89,6 +89,11 @@ def domain_sweeps() -> list[SweepSpec]:
     return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "domain"]
 
 
+def stress_sweeps() -> list[SweepSpec]:
+    """The stress sweeps (sweeps/stress/*.toml), in file order."""
+    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "stress"]
+
+
 CURVE_PREFIX = "curve/"  # metrics logged along training (train.eval_every), kept with their history
 
 

@@ -25,18 +25,12 @@ from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import figures
 from gns_bench.report.cells import budget, budget_statement, fmt
-from gns_bench.report.collect import RunRow, collect, load_rollouts
+from gns_bench.report.collect import RunRow, collect, load_rollouts, stress_sweeps
 from gns_bench.report.figures import RIGIDITY_WORDS
 from gns_bench.stress.plots import plot_stress
 from gns_bench.stress.result import StressResult
-from gns_bench.sweep.spec import SweepSpec, discover_sweeps, load_sweep
+from gns_bench.sweep.spec import SweepSpec
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras
-
-STRESS_PREFIX = "stress-"
-
-
-def stress_sweeps() -> list[SweepSpec]:
-    return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.name.startswith(STRESS_PREFIX)]
 
 
 def load_results(row: RunRow, workdir: Path) -> list[StressResult]:

@@ -13,8 +13,10 @@ import pytest
 
 from gns_bench.evaluate.result import RolloutResult
 from gns_bench.report import baselines
+from gns_bench.report.collect import RunRow
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
+from gns_bench.tracking import RunRecord
 
 MODEL = "[tiers.smoke.config.model]\nlatent_size = 8\nmlp_hidden_size = 8\nmessage_passing_steps = 1\n"
 
@@ -139,3 +141,31 @@ def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path
     # a GNS that has not run at all is said to be so
     lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [])], tmp_path, previous=None)
     assert drawn["boxbath"]["missing"] == {"GNS": "not run yet"}
+
+
+def test_a_stress_sweeps_retraining_of_the_same_model_stands_in_for_gone_gns_rollouts(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
+    (domain_run,) = load_sweep(SWEEPS_DIR / "domains" / "boxbath.toml").plan("cpu")
+    (same,) = load_sweep(SWEEPS_DIR / "stress" / "boxbath.toml").plan("cpu")  # its model: the domain run's config
+    (other,) = load_sweep(SWEEPS_DIR / "stress" / "boxbath-shake.toml").plan("cpu")  # trained longer
+    assert baselines.same_model(domain_run, same) and not baselines.same_model(domain_run, other)
+
+    def row(planned, run_id: str, rollout_mse: float) -> RunRow:
+        record = RunRecord(run_id, planned.name, "FINISHED", 0, metrics={"test/rollout_mse": rollout_mse})
+        return RunRow(planned, record)
+
+    gns, stand_in, longer = row(domain_run, "gnsgone", 0.0217), row(same, "again", 0.03), row(other, "shake", 0.01)
+    rollouts = {"cconv run": [_swelling_cube(20)], "again": [_swelling_cube(20)], "shake": [_swelling_cube(20)]}
+    monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", row), []))
+    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [gns])], tmp_path, previous=None,
+                                             stand_ins={"boxbath": [longer, stand_in]})
+    assert drawn["boxbath"]["rigidity"] == ["GNS", "CConv"] and "missing" not in drawn["boxbath"]
+    assert "stress-boxbath/seed0 (`again`)" in drawn["boxbath"]["gns_from"]
+    assert "rollout MSE 0.03 against the domain run's 0.0217" in drawn["boxbath"]["gns_from"]
+    assert f"The GNS in these pictures: {drawn['boxbath']['gns_from']}." in lines
+    # only a run of the same model stands in: the longer-trained one alone does not
+    _, drawn = baselines.failure_section([(cconv, ["cconv run"], [gns])], tmp_path, previous=None,
+                                         stand_ins={"boxbath": [longer]})
+    assert drawn["boxbath"]["missing"] == {"GNS": baselines.MISSING_ROLLOUTS}
