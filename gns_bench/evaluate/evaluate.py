@@ -226,7 +226,7 @@ def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], c
     nothing was auto)."""
     if config.compile is True:
         return compiled_for_inference(simulator), ""
-    if config.compile is False or not trajectories or getattr(simulator, "architecture", "gns") != "gns":
+    if config.compile is False or not trajectories or getattr(simulator, "network", None) is None:
         return simulator, ("" if config.compile is False else "eager (nothing to compile)")
     from gns_bench.train import autotune
 

@@ -110,6 +110,28 @@ def test_a_compiled_rollout_equals_the_eager_one_and_leaves_the_model_alone(untr
         EvalConfig(compile=True, precision="fp64").validate()
 
 
+@pytest.mark.parametrize("architecture", ["cconv", "dpi"])
+def test_the_baselines_compiled_rollouts_equal_their_eager_ones(architecture: str, tiny_dataset: Path) -> None:
+    from gns_bench.config import EvalConfig, load_config
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.model.precision import compiled_for_inference
+    from gns_bench.train.checkpoints import build_simulator
+
+    torch.manual_seed(0)
+    sizes = {"cconv": ["cconv.layer_channels=[8, 8, 8]"],
+             "dpi": ["dpi.nf_relation=8", "dpi.nf_particle=8", "dpi.nf_effect=8"]}[architecture]
+    config = load_config(None, [f"model.architecture={architecture}", *sizes])
+    simulator = build_simulator(config, read_metadata(tiny_dataset)).eval()
+    trajectories = load_split(tiny_dataset, "test")[:1]
+    base = dict(distribution_steps=0, monitors=False, rollout_steps=8, one_step_windows=2)
+    eager = evaluate(simulator, trajectories, EvalConfig(**base), progress=False)
+    compiled = evaluate(simulator, trajectories, EvalConfig(**base, compile=True), progress=False)
+    assert np.abs(eager.rollouts[0].predicted[-1] - trajectories[0].position[2]).max() > 0  # it moved
+    np.testing.assert_allclose(compiled.rollouts[0].predicted, eager.rollouts[0].predicted, rtol=0, atol=1e-5)
+    assert simulator.network._compiled_call_impl is None  # a frozen copy was compiled, not the model
+    assert compiled_for_inference(simulator).network._compiled_call_impl is not None
+
+
 def test_rollout_compile_auto_probes_once_then_uses_the_cache(untrained: LearnedSimulator, tiny_dataset: Path,
                                                               tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from gns_bench.config import EvalConfig, load_config
