@@ -140,7 +140,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         on_eval = _curve_logger(run, config, evaluated_on, device) if config.train.eval_every else None
         result = train(config, dataset_dir, out_dir, resume=resume, progress=progress, trajectories=trajectories,
                        on_log=lambda step, metrics: run.log_metrics(metrics, step=step), on_eval=on_eval)
-        run.log_metrics({"train/steps_per_second": result.steps_per_second,
+        trained = {"train/steps_per_second": result.steps_per_second} if result.final_step > result.start_step else {}
+        run.log_metrics({**trained,  # a resume with no step left (its evaluation was cut) keeps the last call's rate
                          "train/final_step": result.final_step, "train/wall_time_s": result.wall_time_s,
                          "train/curve_eval_seconds": result.eval_seconds})
         if result.oversubscribed:  # another job competed for the cores: these timings are not comparable

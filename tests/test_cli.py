@@ -69,6 +69,11 @@ def test_resume_continues_the_same_mlflow_run(tiny_dataset: Path, tmp_path: Path
     assert (out / "mlflow_run_id").read_text() == first
     history = client().get_metric_history(first.strip(), "train_loss")
     assert [m.step for m in history] == [5, 10, 15, 20]
+    rate = client().get_run(first.strip()).data.metrics["train/steps_per_second"]
+    assert rate > 0
+    # resumed with no step left to train (e.g. only its evaluation was cut short): the rate stands
+    assert main(["train", *base, "train.steps=20", "--resume"]) == 0
+    assert client().get_run(first.strip()).data.metrics["train/steps_per_second"] == rate
 
 
 def test_failing_run_is_marked_failed(tmp_path: Path) -> None:
