@@ -57,7 +57,6 @@ def baseline_sweeps() -> list[SweepSpec]:
     return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "baseline"]
 
 
-
 def same_model(a: PlannedRun, b: PlannedRun) -> bool:
     """Whether two planned runs train the same model on the same data: equal configs but for [stress] (a stress
     sweep retrains a domain sweep's model when that run's checkpoint is gone, `sweep/runner.py`)."""
@@ -326,12 +325,12 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             continue
         best = {"gns": best_run(here[0][2]), **{architecture_of(sweep): best_run(rows) for sweep, rows, _ in here}}
         with tempfile.TemporaryDirectory() as tmp:
-            models = {name: _rollouts(row, Path(tmp) / name) for name, row in best.items() if name != "gns"}
-            models = {"gns": (found := gns_rollouts(best["gns"], (stand_ins or {}).get(domain, []), Path(tmp)))[0],
-                      **models}
+            gns, gns_from = gns_rollouts(best["gns"], (stand_ins or {}).get(domain, []), Path(tmp))
+            models = {"gns": gns, **{name: _rollouts(row, Path(tmp) / name) for name, row in best.items()
+                                     if name != "gns"}}
         record = (previous or {}).get(domain, {})
         if any(models.values()):  # drawn afresh; else the last report's pictures stand
-            record = {"gns_from": found[1]} if found[1] else {}
+            record = {"gns_from": gns_from} if gns_from else {}
             # a model without rollouts here is left out of the pictures, and the report says why
             missing = {ARCHITECTURE_NAMES[name]: "not run yet" if best[name] is None else MISSING_ROLLOUTS
                        for name, rollouts in models.items() if not rollouts}
