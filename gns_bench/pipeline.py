@@ -14,6 +14,7 @@ import numpy as np
 
 from gns_bench import tracking
 from gns_bench.config import (
+    ARCHITECTURE_NAMES,
     STRESS_TESTS,
     Config,
     ConfigError,
@@ -55,8 +56,9 @@ def _dataset_tags(dataset_dir: str | Path) -> dict[str, Any]:
 
 
 def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
-                               prefix: str) -> list[Path]:
-    """Rollouts (npz), per-trajectory metrics (csv) and pictures of the best and worst rollouts."""
+                               prefix: str, model: str = "GNS") -> list[Path]:
+    """Rollouts (npz), per-trajectory metrics (csv) and pictures of the best and worst rollouts (`model`: the
+    architecture's name, `config.ARCHITECTURE_NAMES`, on the pictures)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [save_rollouts(evaluation, out_dir / f"{prefix}_rollouts.npz")]
     tripped = {f"{i:05d}": r.stopped_by for i, r in enumerate(evaluation.rollouts)
@@ -82,7 +84,8 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
         if evaluation.rollouts[index].predicted.shape[0]:
             mse = evaluation.per_trajectory[index]["rollout_mse"]
             paths.append(plot_rollout(evaluation.rollouts[index], out_dir / f"{prefix}_rollout_{label}.png",
-                                      bounds, title=f"{label} trajectory {index}: rollout MSE {mse:.3g}"))
+                                      bounds, title=f"{label} trajectory {index}: rollout MSE {mse:.3g}",
+                                      name=model))
     return paths
 
 
@@ -91,11 +94,11 @@ EVALUATION_TAGS = ("rollouts_stopped", "rollouts_flagged", "ot_method")
 
 
 def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
-                    split: str) -> None:
+                    split: str, model: str = "GNS") -> None:
     run.delete_tags([f"{split}/{key}" for key in EVALUATION_TAGS if key not in evaluation.tags])
     run.log_metrics({f"{split}/{key}": value for key, value in evaluation.metrics.items()})
     run.set_tags({f"{split}/{key}": value for key, value in evaluation.tags.items()})
-    for path in write_evaluation_artifacts(evaluation, out_dir, bounds, split):
+    for path in write_evaluation_artifacts(evaluation, out_dir, bounds, split, model):
         run.log_artifact(path, "evaluation")
 
 
@@ -201,7 +204,8 @@ def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: 
                           bounds=meta.bounds if scene_bounds else None)
     # what the evaluation cost (the front page sums it over a campaign; `sweep/timing.py` estimates it before)
     evaluation.metrics["evaluation_seconds"] = time.perf_counter() - started
-    _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split)
+    _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split,
+                    ARCHITECTURE_NAMES[simulator.architecture])
     return evaluation
 
 
@@ -236,7 +240,8 @@ def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_d
         run.log_metrics(values)
         logged.update(values)
         run.set_tags({f"generalisation/{variant}/{key}": value for key, value in evaluation.tags.items()})
-        for path in write_evaluation_artifacts(evaluation, stress_dir / variant, scene_meta.bounds, variant):
+        for path in write_evaluation_artifacts(evaluation, stress_dir / variant, scene_meta.bounds, variant,
+                                               ARCHITECTURE_NAMES[simulator.architecture]):
             run.log_artifact(path, f"generalisation/{variant}")
     run.set_tags({"stress/tests": ",".join(r.name for r in outcome.results),
                   "generalisation/datasets": ",".join(outcome.generalisation)})
@@ -324,7 +329,8 @@ def save_rollout(checkpoint: str | Path, dataset_dir: str | Path, split: str = "
                         initial_window=result.initial_window, particle_type=result.particle_type)
     errors = rollout_errors(result, trajectories[index].num_steps)
     png = plot_rollout(result, stem.with_name(stem.name + ".png"), meta.bounds,
-                       title=f"rollout MSE {errors['rollout_mse']:.3g}")
+                       title=f"rollout MSE {errors['rollout_mse']:.3g}",
+                       name=ARCHITECTURE_NAMES[simulator.architecture])
     return SavedRollout(npz, Path(png), result.predicted.shape[0], errors)
 
 

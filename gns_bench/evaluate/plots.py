@@ -1,4 +1,4 @@
-"""Pictures of rollouts (ground truth above, GNS below, at a few steps, one axis frame for all panels), and
+"""Pictures of rollouts (ground truth above, the model below, at a few steps, one axis frame for all panels), and
 the conventions every gns-bench figure shares: units on axes, one colour per configuration."""
 
 from __future__ import annotations
@@ -125,7 +125,7 @@ def frame_steps(result: RolloutResult, num_frames: int) -> np.ndarray:
         raise ValueError("empty rollout: nothing to plot")
     steps = set(np.linspace(0, total - 1, num_frames).round().astype(int).tolist())
     stop = stop_step(result)
-    if stop:  # the last GNS frame before the stop, so the strip shows what the model did last
+    if stop:  # the model's last frame before the stop, so the strip shows what the model did last
         steps.add(stop - 1)
     return np.asarray(sorted(steps), dtype=int)
 
@@ -167,16 +167,16 @@ def draw_timeline(ax: plt.Axes, total: int, steps: Iterable[int], stops: Sequenc
 
 def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None, num_frames: int = 4,
                  title: str = "", marks: dict[int, str] | None = None,
-                 others: Sequence[tuple[str, RolloutResult]] = ()) -> plt.Figure:
-    """Ground truth above GNS at `num_frames` steps over the whole horizon, all panels in one frame (equal
-    aspect, the same limits: `bounds` per dimension, else the ground truth's extent); below, a timeline of the
-    rollout with the step where a monitor stopped it and `marks` (step -> label, steps as monitors count them:
-    `RolloutResult.stopped_at`, "energy_blowup at step 12"; e.g. where a monitor flagged a rollout that ran on).
-    A model's panels after its stop say so. `others`: (name, rollout) of other models on the same trajectory,
-    one row each below the GNS (the baselines' side-by-side strips), their stops on the timeline too. 3D data
-    is seen from the side (`VIEW_AXES`)."""
+                 others: Sequence[tuple[str, RolloutResult]] = (), name: str = "GNS") -> plt.Figure:
+    """Ground truth above the model (`name`: the architecture that rolled `result` out) at `num_frames` steps over the
+    whole horizon, all panels in one frame (equal aspect, the same limits: `bounds` per dimension, else the ground
+    truth's extent); below, a timeline of the rollout with the step where a monitor stopped it and `marks` (step ->
+    label, steps as monitors count them: `RolloutResult.stopped_at`, "energy_blowup at step 12"; e.g. where a monitor
+    flagged a rollout that ran on). A model's panels after its stop say so. `others`: (name, rollout) of other models on
+    the same trajectory, one row each below the first (the baselines' side-by-side strips), their stops on the timeline
+    too. 3D data is seen from the side (`VIEW_AXES`)."""
     marks = dict(marks or {})
-    models = [("GNS", result), *others]
+    models = [(name, result), *others]
     # evenly spaced steps, and the last step each model made before a monitor stopped it
     steps = sorted(set(frame_steps(result, num_frames).tolist()) | {s - 1 for _, r in others if (s := stop_step(r))})
     total = max(max(r.predicted.shape[0] for _, r in models), result.ground_truth.shape[0])
@@ -234,9 +234,9 @@ def draw_rollout(result: RolloutResult, bounds: list[list[float]] | None = None,
 
 def plot_rollout(result: RolloutResult, path: str | Path, bounds: list[list[float]] | None = None,
                  num_frames: int = 4, title: str = "", marks: dict[int, str] | None = None,
-                 others: Sequence[tuple[str, RolloutResult]] = ()) -> Path:
+                 others: Sequence[tuple[str, RolloutResult]] = (), name: str = "GNS") -> Path:
     """`draw_rollout`, saved as a PNG."""
-    fig = draw_rollout(result, bounds, num_frames, title, marks, others)
+    fig = draw_rollout(result, bounds, num_frames, title, marks, others, name)
     path = Path(path)
     fig.savefig(path, dpi=80)
     plt.close(fig)

@@ -50,6 +50,10 @@ from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_r
 HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
           "same steps: GNS / baseline | rollout steps covered: GNS / baseline | GNS better here? | GNS (paper) "
           "| CConv (paper) | CConv / GNS (paper) | MLflow runs |")
+VERDICT_RULE = ("Computed from the table: *yes* when the GNS's rollout MSE against constant velocity's over the "
+                "same steps is lower and its rollouts ran at least as far before any monitor stopped them, *no* when "
+                "the baseline wins on both, *mixed* otherwise. One run a point at this tier, so a small difference "
+                "is within what a second seed could change.")
 DPI = 80
 
 
@@ -248,24 +252,23 @@ def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], 
 
 def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[str]:
     """One line per comparison: does the GNS beat the baseline here, and did it in the paper."""
-    lines = ["## Verdicts", "", "Does the GNS beat the baseline here? Computed from the table: *yes* when its rollout "
-             "MSE against constant velocity's over the same steps is lower and its rollouts ran at least as far "
-             "before any monitor stopped them, *no* when the baseline wins on both, *mixed* otherwise. One run a "
-             "point at this tier, so a small difference is within what a second seed could change.", ""]
-    for sweep, rows, gns_rows in collected:
-        ref = domain_reference(sweep.domain)
-        name, architecture = ref.name if ref else sweep.domain, architecture_of(sweep)
-        like = compare(gns_rows, best_run(rows))
-        baseline = ARCHITECTURE_NAMES[architecture]
-        if like.verdict == "—":
-            lines.append(f"- {name}, GNS against {baseline}: not both run yet.")
-            continue
-        paper = ""
-        if architecture == "cconv" and ref and ref.cconv_rollout_mse and ref.rollout_mse:
-            paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(ref.cconv_rollout_mse)} "
-                     f"rollout MSE, {ratio(ref.cconv_rollout_mse, ref.rollout_mse)}).")
-        lines.append(f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence()}.{paper}")
-    return lines + [""]
+    lines = ["## Verdicts", "", f"Does the GNS beat the baseline here? {VERDICT_RULE}", ""]
+    return lines + [verdict_line(sweep, rows, gns_rows) for sweep, rows, gns_rows in collected] + [""]
+
+
+def verdict_line(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow]) -> str:
+    """Does the GNS beat this baseline sweep's best run here (`Comparison.verdict`), and did it in the paper."""
+    ref = domain_reference(sweep.domain)
+    name, architecture = ref.name if ref else sweep.domain, architecture_of(sweep)
+    like = compare(gns_rows, best_run(rows))
+    baseline = ARCHITECTURE_NAMES[architecture]
+    if like.verdict == "—":
+        return f"- {name}, GNS against {baseline}: not both run yet."
+    paper = ""
+    if architecture == "cconv" and ref and ref.cconv_rollout_mse and ref.rollout_mse:
+        paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(ref.cconv_rollout_mse)} "
+                 f"rollout MSE, {ratio(ref.cconv_rollout_mse, ref.rollout_mse)}).")
+    return f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence()}.{paper}"
 
 
 def _rollouts(row: RunRow | None, workdir: Path) -> list[RolloutResult]:

@@ -43,7 +43,7 @@ from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 
 DPI = 80
 RIGIDITY_WORDS = ("the RMS change of the body's pairwise distances since the rollout began, relative to their "
-                  "RMS; GNS solid, ground truth dashed; 0 is perfectly rigid")
+                  "RMS; the model solid, ground truth dashed; 0 is perfectly rigid")
 PANELS = (("one_step_mse", "one-step MSE"), ("rollout_mse", "rollout MSE"), ("ot", "optimal transport"),
           ("mmd", "MMD"))
 # Where a health monitor stopped rollouts, the raw rollout MSE, OT and MMD cover different steps in different runs
@@ -185,9 +185,9 @@ def time_error_figure(points: list[tuple[str, float, float, float]], path: Path)
 # ----------------------------------------------------------------------------------------------
 
 def rigidity_curves(result: RolloutResult, rigid_type: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """(GNS, ground truth) `metrics.rigidity_drift` of the particles of `rigid_type`, from the start of the
-    rollout (the last input frame, step 0) to each step; None without a rigid body. The GNS curve ends where a
-    monitor stopped the rollout."""
+    """(model, ground truth) `metrics.rigidity_drift` of the particles of `rigid_type`, from the start of the
+    rollout (the last input frame, step 0) to each step; None without a rigid body. The model's curve ends where
+    a monitor stopped the rollout."""
     rigid = result.particle_type == rigid_type
     if result.birth_step is not None:  # inflow: only a body present from the start has a rest shape
         rigid &= result.birth_step < result.initial_window.shape[0]
@@ -199,17 +199,19 @@ def rigidity_curves(result: RolloutResult, rigid_type: int) -> tuple[np.ndarray,
 
 
 def rigidity_figure(rollouts: Sequence[RolloutResult], rigid_type: int, path: Path,
-                    labels: Sequence[str] | None = None, max_trajectories: int = 8) -> Path | None:
-    """Rigid-body drift against the rollout step, GNS solid and ground truth dashed, one colour per
-    trajectory (the first `max_trajectories` with a body of `rigid_type`); an x where a monitor stopped the
-    GNS. None (no file) when no rollout has such a body. `labels[i]` names rollout i (default: trajectory i)."""
+                    labels: Sequence[str] | None = None, max_trajectories: int = 8,
+                    model: str = "GNS") -> Path | None:
+    """Rigid-body drift against the rollout step, `model` (the architecture that rolled out) solid and ground truth
+    dashed, one colour per trajectory (the first `max_trajectories` with a body of `rigid_type`); an x where a monitor
+    stopped the model. None (no file) when no rollout has such a body. `labels[i]` names rollout i (default: trajectory
+    i)."""
     curves = [(i, c) for i, r in enumerate(rollouts) if (c := rigidity_curves(r, rigid_type)) is not None]
     if not curves:
         return None
     shown = curves[:max_trajectories]
     fig, ax = plt.subplots(figsize=(5.6, 3.6), layout="constrained")
     series, stops = [], []
-    handles = [plt.Line2D([], [], c="k", ls=GNS_LINE, label="GNS"),
+    handles = [plt.Line2D([], [], c="k", ls=GNS_LINE, label=model),
                plt.Line2D([], [], c="k", ls=TRUTH_LINE, label="ground truth")]
     for n, (i, (gns, truth)) in enumerate(shown):
         colour = PALETTE[n % len(PALETTE)]
@@ -243,7 +245,7 @@ def rigidity_figure(rollouts: Sequence[RolloutResult], rigid_type: int, path: Pa
 
 
 # ----------------------------------------------------------------------------------------------
-# Rollouts: ground truth beside GNS, one frame for both, the stop and flagged steps marked
+# Rollouts: ground truth beside the model, one frame for both, the stop and flagged steps marked
 # ----------------------------------------------------------------------------------------------
 
 def _thin(result: RolloutResult, max_particles: int = 5000) -> RolloutResult:
@@ -257,30 +259,32 @@ def _thin(result: RolloutResult, max_particles: int = 5000) -> RolloutResult:
         birth_step=None if result.birth_step is None else result.birth_step[::stride])
 
 
-def rollout_png(result: RolloutResult, path: Path, title: str, marks: dict[int, str] | None = None) -> Path:
-    """Ground truth and prediction at 4 steps over the whole horizon (3D data seen from the side, `VIEW_AXES`),
-    the step a monitor stopped the rollout and `marks` (step index -> label: where one flagged it) shown."""
-    return plot_rollout(_thin(result), path, None, num_frames=4, title=title, marks=marks)
+def rollout_png(result: RolloutResult, path: Path, title: str, marks: dict[int, str] | None = None,
+                model: str = "GNS") -> Path:
+    """Ground truth and `model`'s prediction at 4 steps over the whole horizon (3D data seen from the side,
+    `VIEW_AXES`), the step a monitor stopped the rollout and `marks` (step index -> label: where one flagged it)
+    shown."""
+    return plot_rollout(_thin(result), path, None, num_frames=4, title=title, marks=marks, name=model)
 
 
 def rollout_strip(models: Sequence[tuple[str, RolloutResult]], path: Path, title: str) -> Path:
     """One test trajectory as each model rolled it out, a row per model below the ground truth, at the same
-    steps (the GNS's 4 evenly spaced ones and each model's last before a monitor stopped it). The first model
-    is the GNS; every rollout must be of the same trajectory."""
+    steps (the first model's 4 evenly spaced ones and each model's last before a monitor stopped it); every
+    rollout must be of the same trajectory."""
     (_, first), others = models[0], models[1:]
     for name, other in others:
         start, first_start = other.initial_window[-1], first.initial_window[-1]
         if start.shape != first_start.shape or not np.array_equal(start, first_start):
             raise ValueError(f"{path}: {name}'s rollout does not start where the {models[0][0]}'s does: not "
                              "the same test trajectory")
-    return plot_rollout(_thin(first), path, None, num_frames=4, title=title,
+    return plot_rollout(_thin(first), path, None, num_frames=4, title=title, name=models[0][0],
                         others=[(name, _thin(other)) for name, other in others])
 
 
 def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int = 30, fps: int = 8,
-                marks: dict[int, str] | None = None) -> Path:
-    """An animation: ground truth on the left, GNS on the right, in one frame, at most `max_frames` frames over
-    the whole horizon; after a monitor stopped the rollout the GNS panel says so, and the caption names the
+                marks: dict[int, str] | None = None, model: str = "GNS") -> Path:
+    """An animation: ground truth on the left, `model` on the right, in one frame, at most `max_frames` frames
+    over the whole horizon; after a monitor stopped the rollout the model's panel says so, and the caption names the
     steps `marks` flagged once they are reached."""
     result = _thin(result)
     marks = dict(marks or {})
@@ -292,7 +296,7 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
     fig, axes = plt.subplots(1, 2, figsize=(5.0, 3.3), sharex=True, sharey=True, layout="constrained")
     scatters = []
     start = result.ground_truth[0][:, dims] if len(result.ground_truth) else result.initial_window[-1][:, dims]
-    for ax, label in ((axes[0], "ground truth"), (axes[1], "GNS")):
+    for ax, label in ((axes[0], "ground truth"), (axes[1], model)):
         scatters.append(ax.scatter(start[:, 0], start[:, 1], s=size, c=colours, linewidths=0))
         ax.set_xlim(limits[0])
         ax.set_ylim(limits[1])

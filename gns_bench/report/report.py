@@ -12,10 +12,11 @@ import math
 import tempfile
 from pathlib import Path
 
+from gns_bench.config import ARCHITECTURE_NAMES
 from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
-from gns_bench.report import figures
+from gns_bench.report import baselines, figures
 from gns_bench.report.baselines import write_baselines_report
 from gns_bench.report.cells import (
     MISSING,
@@ -181,25 +182,20 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
 
 def baseline_section(sweep: SweepSpec, tier: str, rows: list[RunRow], reports_root: Path, compare: bool) -> list[str]:
     """A baseline beside the GNS on the same domain and tier (the domain sweep's runs), ours and the paper's
-    (Sec. 5.5, App. D.1): rollout MSE by the paper's definition, the ratio baseline / GNS for each."""
-    architecture = rows[0].planned.config.model.architecture if rows else "?"
+    (Sec. 5.5, App. D.1): the baselines report's row for this sweep (`report/baselines.py`: the raw ratio and,
+    like for like, each model against constant velocity over its own steps) and its verdict."""
+    architecture = ARCHITECTURE_NAMES[baselines.architecture_of(sweep)]
     domain = next((s for s in domain_sweeps() if s.domain == sweep.domain), None)
     gns_rows = collect(domain, tier, reports_root) if domain else []
-    ref = domain_reference(sweep.domain)
-    best = min((r for r in rows if r.ok), key=lambda r: r.metric("rollout_mse"), default=None)
-    gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
-    ours = best.metric("rollout_mse") if best else math.nan
-    paper_baseline = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
-    header = "| | GNS rollout MSE | baseline rollout MSE | baseline / GNS |"
-    rows_out = [["ours (" + tier + ")", fmt(gns), fmt(ours) + (f" (`{best.planned.name}`, its best)" if best else ""),
-                 (f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare else "—")]]
-    if ref:
-        rows_out.append(["paper", fmt(ref.rollout_mse), fmt(paper_baseline) if paper_baseline else "—",
-                         f"{ratio(paper_baseline, ref.rollout_mse)}" if paper_baseline else "—"])
-    return [f"## {architecture} beside the GNS (Sec. 5.5)", "",
-            f"The GNS is the domain sweep's run at this tier ({_link_report(domain.name if domain else '?', tier)}); "
-            "the baseline's value is its best run here, as the paper reports CConv's best over its sweeps "
-            "(read off the paper's bar chart: approximate).", "", *_table(header, rows_out), ""]
+    lines = [f"## {architecture} beside the GNS (Sec. 5.5)", "",
+             f"The GNS is the domain sweep's run at this tier ({_link_report(domain.name if domain else '?', tier)}); "
+             f"{architecture}'s value is its best run here (lowest error against constant velocity over the same "
+             "steps), as the paper reports CConv's best over its sweeps (read off the paper's bar chart: "
+             f"approximate). All baselines side by side: {_link_report('baselines', tier)}.", "",
+             *_table(baselines.HEADER, [baselines.comparison_row(sweep, rows, gns_rows, compare)]), ""]
+    if compare:
+        lines += [baselines.VERDICT_RULE, "", baselines.verdict_line(sweep, rows, gns_rows), ""]
+    return lines
 
 
 def _link_report(name: str, tier: str) -> str:
@@ -291,6 +287,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     if not done:
         return lines + ["No finished run with rollouts.", ""], {}
     row = done[0]
+    model = ARCHITECTURE_NAMES[row.planned.config.model.architecture]
     linked = _shared_pictures(row, out_dir)
     if linked:  # another report already draws this run's rollouts: link them, do not copy them
         for stale in [*out_dir.glob("rollout_*.png"), *out_dir.glob("rollout_*.gif"), out_dir / "rigidity.png"]:
@@ -313,17 +310,20 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         for shown in picks["shown"]:
             result, name = results[shown["trajectory"]], shown["label"]
             marks = flagged.get(shown["trajectory"], {})
-            figures.rollout_png(result, out_dir / f"rollout_{name}.png", _rollout_title(shown, alone), marks=marks)
-            figures.rollout_gif(result, out_dir / f"rollout_{name}.gif", _rollout_title(shown, alone), marks=marks)
-        # rigid materials (BOXBATH's cube): how far each body's shape drifts, GNS against ground truth
-        picks["rigidity"] = figures.rigidity_figure(loaded, RIGID_PARTICLE_TYPE, out_dir / "rigidity.png") is not None
+            title = _rollout_title(shown, alone)
+            figures.rollout_png(result, out_dir / f"rollout_{name}.png", title, marks=marks, model=model)
+            figures.rollout_gif(result, out_dir / f"rollout_{name}.gif", title, marks=marks, model=model)
+        # rigid materials (BOXBATH's cube): how far each body's shape drifts, the model against ground truth
+        picks["rigidity"] = figures.rigidity_figure(loaded, RIGID_PARTICLE_TYPE, out_dir / "rigidity.png",
+                                                    model=model) is not None
     elif previous and previous.get("run_id") == row.run_id and all(
             (out_dir / f"rollout_{s['label']}.png").is_file() for s in previous.get("shown", [])):
         picks = previous  # the store that held the rollouts is gone; the committed pictures stand
     else:
         return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""], {}
     lines += [f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{picks['split']}': "
-              "ground truth beside the GNS on one frame; the MSE is of moving particles over the steps shown.", ""]
+              f"ground truth beside {'the GNS' if model == 'GNS' else model} on one frame; the MSE is of moving "
+              "particles over the steps shown.", ""]
     for shown in picks["shown"]:
         name = shown["label"]
         lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",

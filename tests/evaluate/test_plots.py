@@ -135,3 +135,10 @@ def test_other_models_get_a_row_each_with_their_own_stop(tmp_path: Path) -> None
     assert all(ax.collections for ax in panels[1::4] + panels[3::4])  # GNS and DPI ran the whole horizon
     assert "CConv: stopped at step 5 (out_of_bounds)" in _texts(fig)  # on the timeline, named
     plt.close(fig)
+
+
+def test_the_model_row_is_named_for_the_architecture_that_rolled_out() -> None:
+    fig = draw_rollout(synthetic_rollout(), num_frames=3, name="CConv")  # a baseline sweep's own pictures
+    labels = [ax.get_ylabel().split("\n")[0] for ax in _panels(fig) if ax.get_ylabel()]
+    assert labels == ["ground truth", "CConv"]
+    plt.close(fig)

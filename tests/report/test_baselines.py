@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from gns_bench.evaluate.result import RolloutResult
-from gns_bench.report import baselines
+from gns_bench.report import baselines, report
 from gns_bench.report.collect import RunRow
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
@@ -71,6 +71,15 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     section = baselines.cost_section([], tmp_path / "unpaired")
     (cost_row,) = [line for line in section if line.startswith("| tiny | CConv |")]
     assert "| — |" in cost_row and "—x" not in cost_row
+    # the baseline sweep's own report: the baselines report's row and verdict, its pictures named for CConv
+    monkeypatch.setattr(report, "domain_sweeps", lambda: [domain])
+    section = report.baseline_section(baseline, "smoke", rows, tmp_path / "reports", compare=True)
+    assert section[0] == "## CConv beside the GNS (Sec. 5.5)"
+    assert baselines.HEADER in section and "| " + " | ".join(compared) + " |" in section
+    assert baselines.verdict_line(baseline, rows, gns_rows) in section
+    page = report.write_sweep_report(baseline, "smoke", tmp_path / "reports" / baseline.name / "smoke").read_text()
+    assert "ground truth beside CConv on one frame" in page and "beside the GNS on one frame" not in page
+    assert baselines.HEADER in page and baselines.VERDICT_RULE not in page  # smoke: no verdict drawn
 
 
 @pytest.mark.parametrize(("gns", "baseline", "gns_steps", "baseline_steps", "verdict"), [
