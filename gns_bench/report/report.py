@@ -35,6 +35,7 @@ from gns_bench.report.cells import (
     shared_cores_mark,
     status_cell,
     steps_covered,
+    times,
     used_precision,
 )
 from gns_bench.report.collect import (
@@ -279,8 +280,9 @@ def time_section(rows: list[RunRow], out_dir: Path, label=lambda r: r.planned.na
 
 def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = None) -> tuple[list[str], dict]:
     """Best and worst test trajectories of the run with the lowest rollout MSE, as PNG and GIF (once when they
-    are the same trajectory). Returns the lines and the picks (run, trajectories, their errors), which the run
-    summary keeps: when the run's rollouts are no longer in MLflow, the committed pictures are shown again."""
+    are the same trajectory), with a note naming the best run like for like when that is another
+    (`_fairer_pick`). Returns the lines and the picks (run, trajectories, their errors), which the run summary
+    keeps: when the run's rollouts are no longer in MLflow, the committed pictures are shown again."""
     done = sorted((r for r in rows if r.ok and math.isfinite(r.metric("rollout_mse"))),
                   key=lambda r: r.metric("rollout_mse"))
     lines = ["## Rollouts", ""]
@@ -292,7 +294,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     if linked:  # another report already draws this run's rollouts: link them, do not copy them
         for stale in [*out_dir.glob("rollout_*.png"), *out_dir.glob("rollout_*.gif"), out_dir / "rigidity.png"]:
             stale.unlink(missing_ok=True)  # drawn here by an earlier report of this sweep
-        return lines + linked, {}
+        return lines + linked + _fairer_pick(row, done), {}
     with tempfile.TemporaryDirectory() as tmp:
         loaded = load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", Path(tmp))
     results = {i: r for i, r in enumerate(loaded) if r.predicted.shape[0]}  # trajectory number -> rollout
@@ -323,7 +325,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""], {}
     lines += [f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{picks['split']}': "
               f"ground truth beside {'the GNS' if model == 'GNS' else model} on one frame; the MSE is of moving "
-              "particles over the steps shown.", ""]
+              "particles over the steps shown.", "", *_fairer_pick(row, done)]
     for shown in picks["shown"]:
         name = shown["label"]
         lines += [f"**{_rollout_title(shown, len(picks['shown']) == 1)}**", "",
@@ -332,6 +334,19 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         lines += ["### Rigidity", "", f"Rigid-body drift of every test rollout ({figures.RIGIDITY_WORDS}).", "",
                   "![rigid-body drift](rigidity.png)", ""]
     return lines, picks
+
+
+def _fairer_pick(shown: RunRow, done: list[RunRow]) -> list[str]:
+    """A warning when the run drawn (lowest raw rollout MSE) is not the lowest against constant velocity over the
+    same steps: a run whose rollouts a monitor stopped early has a raw MSE over few steps, which reads low, so
+    the picture is then not of the run the verdicts and the baselines report would call best."""
+    fair = min((r for r in done if math.isfinite(relative_to_cv(r))), key=relative_to_cv, default=None)
+    if fair is None or fair is shown or not math.isfinite(relative_to_cv(shown)):
+        return []
+    return [f"Like for like this is not the best run: against constant velocity over the same steps it reaches "
+            f"{times(relative_to_cv(shown))} where {fair.planned.name} ({run_id_cell(fair)}) reaches "
+            f"{times(relative_to_cv(fair))}; their rollouts covered {fmt(shown.metric('rollout_steps'))} and "
+            f"{fmt(fair.metric('rollout_steps'))} steps before any monitor's stop (mean over the test rollouts).", ""]
 
 
 def _shared_pictures(row: RunRow, out_dir: Path) -> list[str]:

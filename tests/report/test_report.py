@@ -362,6 +362,27 @@ def test_ablation_table_compares_stopped_runs_with_constant_velocity_over_their_
     assert "cover different steps" in text
 
 
+def test_the_rollout_pictures_say_when_the_run_drawn_is_not_the_best_like_for_like() -> None:
+    """The pictures are of the lowest raw rollout MSE; a run whose rollouts a monitor stopped early reads low
+    there, so the report names the run that is best against constant velocity over the same steps."""
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.report import _fairer_pick
+
+    sweep = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml")
+    planned = {r.axes["train.noise_std"]: r for r in sweep.plan("smoke")}
+
+    def row(value: float, rollout: float, same_steps: float, steps: float) -> RunRow:
+        metrics = {"test/rollout_mse": rollout, "test/baseline_cv_same_steps_mse": same_steps,
+                   "test/rollout_steps": steps, "test/rollout_stopped": float(steps < 100)}
+        return RunRow(planned[value], tracking.RunRecord(f"run{value}", "n", "FINISHED", 0, {}, metrics))
+
+    stopped, fair = row(0.0, 0.1, 0.05, 40), row(3e-4, 0.3, 0.6, 100)  # lower raw MSE, worse like for like
+    (warning, _) = _fairer_pick(stopped, [stopped, fair])
+    assert f"{fair.planned.name} (`run0.0003`) reaches 0.5x" in warning and "reaches 2x where" in warning
+    assert "covered 40 and 100 steps" in warning
+    assert _fairer_pick(fair, [fair, stopped]) == []  # the run drawn is the best like for like: nothing to say
+
+
 def test_a_run_drawn_in_another_report_is_linked_not_drawn_again(tmp_path: Path) -> None:
     """Issue #20.6: the rollout pictures of a training run live in one report; a report whose best run is
     that run (a shared copy, or the run copies were made from) links them, whichever report drew them."""
