@@ -340,7 +340,7 @@ def _fairer_pick(shown: RunRow, done: list[RunRow]) -> list[str]:
     """A warning when the run drawn (lowest raw rollout MSE) is not the lowest against constant velocity over the
     same steps: a run whose rollouts a monitor stopped early has a raw MSE over few steps, which reads low, so
     the picture is then not of the run the verdicts and the baselines report would call best."""
-    fair = min((r for r in done if math.isfinite(relative_to_cv(r))), key=relative_to_cv, default=None)
+    fair = baselines.best_run(done)  # the baselines report's choice: lowest against constant velocity
     if fair is None or fair is shown or not math.isfinite(relative_to_cv(shown)):
         return []
     return [f"Like for like this is not the best run: against constant velocity over the same steps it reaches "
