@@ -18,8 +18,9 @@ One continuous convolution at a query point x over the sources x_j closer than t
   a       the poly6 window clamp((1 - q^2)^3, 0, 1);
   no normalisation by the neighbour count (the authors set normalize=False).
 
-The interpolation weights depend on positions only; they are computed once per step and shared by every layer.
-As in Open3D (whose op has no gradient with respect to positions) the geometry is not differentiated.
+The interpolation weights depend on positions only; they are computed once per step and shared by every layer,
+as one sparse matrix (the edges' 2^D filter lookups) and its transpose for the backward pass. As in Open3D
+(whose op has no gradient with respect to positions) the geometry is not differentiated.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -101,7 +103,8 @@ def poly6_window(q2: torch.Tensor) -> torch.Tensor:
 
 class ConvGeometry(NamedTuple):
     """Where each edge reads the filter: the 2^D grid nodes around its mapped position and their weights
-    (interpolation weight times window), for queries numbered 0..num_queries-1."""
+    (interpolation weight times window), for queries numbered 0..num_queries-1; and the same lookups as one sparse
+    matrix, `lookup` [num_queries x K^D, num_sources] (row: query x K^D + node), with its transpose."""
 
     senders: torch.Tensor  # [E] index into the sources
     receivers: torch.Tensor  # [E] index into the queries
@@ -109,6 +112,49 @@ class ConvGeometry(NamedTuple):
     weights: torch.Tensor  # [E, 2^D]
     window: torch.Tensor  # [E] the window values alone (for normalize)
     num_queries: int
+    lookup: torch.Tensor  # sparse CSR [num_queries * K^D, num_sources]: cell sums = lookup @ source features
+    lookup_t: torch.Tensor  # sparse CSR, its transpose (the gradient with respect to the source features)
+
+
+def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A CSR matrix from COO entries (repeated (row, col) pairs add up, as in a scatter)."""
+    order = torch.argsort(rows)
+    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
+    crow[1:] = torch.bincount(rows, minlength=shape[0]).cumsum(0)
+    with warnings.catch_warnings():  # torch calls its sparse CSR support "beta" at every construction
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, cols[order], values[order], shape, check_invariants=False)
+
+
+def _lookup_matrices(nodes: torch.Tensor, weights: torch.Tensor, senders: torch.Tensor,
+                     receivers: torch.Tensor, num_queries: int, num_sources: int,
+                     cells: int) -> tuple[torch.Tensor, torch.Tensor]:
+    rows = (receivers[:, None] * cells + nodes).reshape(-1)
+    cols = senders.repeat_interleave(nodes.shape[1])
+    values = weights.reshape(-1)
+    return (_csr(rows, cols, values, (num_queries * cells, num_sources)),
+            _csr(cols, rows, values, (num_sources, num_queries * cells)))
+
+
+class _LookupMatmul(torch.autograd.Function):
+    """lookup @ features, differentiated with respect to the features only (the geometry is constant), by the
+    stored transpose. Runs in the matrices' dtype, outside autocast: it is the accumulation of the scatter."""
+
+    @staticmethod
+    def forward(ctx, lookup: torch.Tensor, lookup_t: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        ctx.lookup_t = lookup_t
+        with torch.autocast(features.device.type, enabled=False):
+            return lookup @ features
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[None, None, torch.Tensor]:
+        with torch.autocast(grad.device.type, enabled=False):
+            return None, None, ctx.lookup_t @ grad.to(ctx.lookup_t.dtype)
+
+
+@torch.compiler.disable  # sparse CSR tensors are not traced by torch.compile: the network compiles around this
+def _cell_sums(geometry: ConvGeometry, features: torch.Tensor) -> torch.Tensor:
+    return _LookupMatmul.apply(geometry.lookup, geometry.lookup_t, features.to(geometry.weights.dtype))
 
 
 def cconv_geometry(source_position: torch.Tensor, query_position: torch.Tensor, senders: torch.Tensor,
@@ -135,25 +181,26 @@ def cconv_geometry(source_position: torch.Tensor, query_position: torch.Tensor, 
             weight = weight * (frac[:, d] if bit else 1 - frac[:, d])
         nodes.append(index)
         weights.append(weight)
-    return ConvGeometry(senders, receivers, torch.stack(nodes, dim=1), torch.stack(weights, dim=1), window_value,
-                        query_position.shape[0])
+    nodes, weights = torch.stack(nodes, dim=1), torch.stack(weights, dim=1)
+    num_queries = query_position.shape[0]
+    lookup, lookup_t = _lookup_matrices(nodes, weights, senders, receivers, num_queries, source_position.shape[0],
+                                        k**dim)
+    return ConvGeometry(senders, receivers, nodes, weights, window_value, num_queries, lookup, lookup_t)
 
 
 def apply_cconv(features: torch.Tensor, geometry: ConvGeometry, kernel: torch.Tensor,
                 bias: torch.Tensor | None = None, normalize: bool = False) -> torch.Tensor:
     """Output features [N, C_out] from source features [M, C_in] and a filter [K, .., K, C_in, C_out].
 
-    Each source's weighted features are scattered into its receiver's filter cells (index_add), then one matmul
-    with the flattened filter sums over cells and channels. Accumulation runs in the geometry's dtype (fp32 under
-    bf16 autocast); the matmul follows autocast."""
+    Each source's weighted features are summed into its receiver's filter cells (the sparse `lookup` matrix times
+    the features), then one matmul with the flattened filter sums over cells and channels. Accumulation runs in
+    the geometry's dtype (fp32 under bf16 autocast); the matmul follows autocast. The sparse product replaced 2^D
+    scatters (index_add) of per-edge weighted copies of the features: a SAND training step (cpu tier, batch 2,
+    bf16) went from 3.38 to 6.68 steps/s, the mean over the same 95 steps (AMD EPYC family 25, 2 threads)."""
     c_in, c_out = kernel.shape[-2:]
     cells = kernel[..., 0, 0].numel()
     n = geometry.num_queries
-    source = features.index_select(0, geometry.senders).to(geometry.weights.dtype)
-    cell_sums = source.new_zeros((n * cells, c_in))
-    base = geometry.receivers * cells
-    for c in range(geometry.nodes.shape[1]):
-        cell_sums = cell_sums.index_add(0, base + geometry.nodes[:, c], source * geometry.weights[:, c:c + 1])
+    cell_sums = _cell_sums(geometry, features)
     out = cell_sums.reshape(n, cells * c_in) @ kernel.reshape(cells * c_in, c_out)
     if normalize:  # Open3D's normalize: divide by the sum of the window values (the count without a window)
         total = geometry.window.new_zeros(n).index_add(0, geometry.receivers, geometry.window)

@@ -118,6 +118,35 @@ def test_convolution_equals_brute_force(dim: int, same_set: bool) -> None:
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+def test_gradients_with_respect_to_features_and_filter(dim: int) -> None:
+    """The sparse lookup's hand-written backward (its stored transpose) against finite differences, and no
+    gradient into the positions (Open3D's op has none)."""
+    g = torch.Generator().manual_seed(20 + dim)
+    sources = torch.rand(20, dim, generator=g, dtype=torch.float64, requires_grad=True)
+    queries = torch.rand(15, dim, generator=g, dtype=torch.float64)
+    features = torch.randn(20, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    kernel = torch.randn(*[4] * dim, 3, 2, generator=g, dtype=torch.float64, requires_grad=True)
+    edges = _edges(sources.detach(), queries, 0.5, same_set=False)
+    assert edges.shape[1] > 40
+
+    def conv(f: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        return continuous_conv(f, sources, queries, edges, 0.5, k)
+
+    assert torch.autograd.gradcheck(conv, (features, kernel))
+    conv(features, kernel).sum().backward()
+    assert sources.grad is None
+
+
+def test_queries_without_neighbours_get_the_bias() -> None:
+    """An empty edge set (a scene without obstacle particles) is a zero convolution, not an error."""
+    pos = torch.rand(7, 2)
+    bias = torch.randn(4)
+    out = continuous_conv(torch.randn(0, 1), torch.zeros(0, 2), pos, torch.zeros(2, 0, dtype=torch.long), 0.3,
+                          torch.randn(4, 4, 1, 4), bias)
+    torch.testing.assert_close(out, bias.expand(7, 4))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 def test_constant_filter_is_a_windowed_neighbour_sum(dim: int) -> None:
     g = torch.Generator().manual_seed(10 + dim)
     pos = torch.rand(30, dim, generator=g)
