@@ -198,11 +198,19 @@ class PropagationStage(nn.Module):
         slot = torch.full((effect.shape[0],), -1, dtype=torch.long, device=effect.device)
         slot[nodes] = torch.arange(nodes.numel(), device=effect.device)
         receiver_slot = slot[receivers]
+        # W_R [c_k, e_r, e_s] + b = (W_c c_k + b) + (W_r e)_r + (W_s e)_s: the encoding's term once for all steps,
+        # the effects' terms per node before the gather (nodes are far fewer than relations). The same maths
+        # as the concatenation, and the same parameters; BOXBATH training went from 2.07 to 3.27 steps/s (mean over
+        # the same 75 steps; cpu tier, batch 2, bf16; AMD EPYC family 25, 2 threads).
+        nf_r, nf_e = relation.shape[1], effect.shape[1]
+        weight = self.relation_propagator.weight
+        encoding_term = F.linear(relation, weight[:, :nf_r], self.relation_propagator.bias)
+        effect_weight = torch.cat([weight[:, nf_r:nf_r + nf_e], weight[:, nf_r + nf_e:]])  # [2 nf_e, nf_e]
         for _ in range(steps):
-            relation_effect = F.relu(self.relation_propagator(
-                torch.cat([relation, effect[receivers], effect[senders]], dim=1)))
+            as_receiver, as_sender = F.linear(effect, effect_weight).split(nf_e, dim=1)
+            relation_effect = F.relu(encoding_term + as_receiver[receivers] + as_sender[senders])
             incoming = relation_effect.new_zeros((nodes.numel(), relation_effect.shape[1]))
-            incoming = incoming.index_add(0, receiver_slot, relation_effect)
+            incoming.index_add_(0, receiver_slot, relation_effect)
             updated = F.relu(self.particle_propagator(torch.cat([encoded, incoming], dim=1)) + effect[nodes])
             effect = effect.index_copy(0, nodes, updated.to(effect.dtype))
         return effect

@@ -12,6 +12,7 @@ from gns_bench.data.format import Metadata
 from gns_bench.model.dpi import (
     DPIConfig,
     DPISimulator,
+    PropagationStage,
     build_hierarchy,
     kmeans_labels,
     rigid_bodies,
@@ -177,6 +178,42 @@ def test_graph_relations_follow_the_authors() -> None:
     self_loops = senders[senders == receivers]
     assert set(water.tolist()) <= set(self_loops.tolist())  # their ball query finds the particle itself
     assert graph.hierarchy.num_roots == 4
+
+
+def test_propagation_is_the_relation_propagator_on_the_concatenation() -> None:
+    """The stage splits W_R [c_k, e_r, e_s] into per-relation and per-node products: it must equal the
+    propagation written as the authors' concatenation, with the same parameters (gradients included)."""
+    torch.manual_seed(0)
+    stage = PropagationStage(attr_size=4, state_size=6, config=DPIConfig(**SMALL)).double()
+    m, e = 30, 120
+    attr, state = torch.randn(m, 4, dtype=torch.float64), torch.randn(m, 6, dtype=torch.float64)
+    effect = torch.randn(m, SMALL["nf_effect"], dtype=torch.float64, requires_grad=True)
+    edges = torch.randint(0, m, (2, e))
+    nodes = torch.arange(5, 25)
+    edges[1] = nodes[torch.randint(0, nodes.numel(), (e,))]  # every relation into one of the stage's nodes
+
+    def concatenated(effect: torch.Tensor) -> torch.Tensor:
+        senders, receivers = edges
+        encoded = stage.particle_encoder(torch.cat([attr[nodes], state[nodes]], dim=1))
+        relation = stage.relation_encoder(
+            torch.cat([attr[receivers], attr[senders], state[receivers], state[senders]], dim=1))
+        slot = torch.full((m,), -1, dtype=torch.long)
+        slot[nodes] = torch.arange(nodes.numel())
+        for _ in range(2):
+            relation_effect = torch.relu(stage.relation_propagator(
+                torch.cat([relation, effect[receivers], effect[senders]], dim=1)))
+            incoming = torch.zeros(nodes.numel(), relation_effect.shape[1], dtype=torch.float64)
+            incoming = incoming.index_add(0, slot[receivers], relation_effect)
+            updated = torch.relu(stage.particle_propagator(torch.cat([encoded, incoming], dim=1)) + effect[nodes])
+            effect = effect.index_copy(0, nodes, updated)
+        return effect
+
+    ours, theirs = stage(effect, attr, state, edges, nodes, steps=2), concatenated(effect)
+    torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+    assert not torch.equal(ours[nodes], effect[nodes])  # the stage did update its nodes
+    grad_ours = torch.autograd.grad(ours.square().sum(), stage.relation_propagator.weight)[0]
+    grad_theirs = torch.autograd.grad(theirs.square().sum(), stage.relation_propagator.weight)[0]
+    torch.testing.assert_close(grad_ours, grad_theirs, rtol=1e-10, atol=1e-12)
 
 
 # (c) a forward pass: finite, and the rigid part rigid
