@@ -307,11 +307,26 @@ def _add_report(sub: argparse._SubParsersAction) -> None:
                                  "runs at the tier, then those four")
     p.add_argument("--tier", default="smoke", choices=TIERS, help="which tier's runs to compile")
     p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
+    p.add_argument("--measure-cost", action="store_true",
+                   help="baselines only: first time every comparison's models here, one after another (a few "
+                        "training steps each on the tier's data, and their rollout steps), and keep the table in "
+                        "the report: cost like for like on one machine (minutes; pause other jobs first)")
+    p.add_argument("--data-root", type=Path, default=Path("data"), help="with --measure-cost: where the datasets are")
 
 
 def cmd_report(args: argparse.Namespace) -> None:
     from gns_bench.report import write_all_reports, write_report
 
+    if args.measure_cost:
+        from gns_bench.report.baselines import measure_costs, write_baselines_report
+
+        if args.sweep != "baselines":
+            raise SystemExit(f"gns-bench report: --measure-cost times the baselines report's models; got sweep "
+                             f"{args.sweep!r}, expected 'baselines'")
+        measured = measure_costs(args.tier, args.data_root)
+        print(write_baselines_report(args.tier, args.reports_root / "baselines" / args.tier, args.reports_root,
+                                     measured=measured))
+        return
     if args.sweep == "all":
         print("\n".join(map(str, write_all_reports(args.tier, args.reports_root))))
     else:

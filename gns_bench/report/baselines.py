@@ -10,8 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import date
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -201,6 +204,80 @@ def costs(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list
     return out
 
 
+MEASURED = "measured_cost"  # the summary extra that keeps `measure_costs`' result between regenerations
+
+
+def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
+                  echo: Callable[[str], None] = print) -> dict[str, Any]:
+    """Every comparison's models timed one after another on this machine, on the tier's data (issue #21: cost
+    beside error, like for like). Per comparison domain, the GNS (the domain sweep's first run) and each
+    baseline (its sweep's first run: its training noise does not change a step's cost): `steps` steps of the
+    run's own training loop, with the precision and compile settings the run would choose here
+    (`sweep.timing.time_runs`), and its evaluation's rollout steps (`evaluate.cost`). A run's own training
+    time is measured on whatever machine trained it; these are all measured here, in one sitting.
+    Comparisons whose data is not generated are left out (`missing`)."""
+    from gns_bench.devices import cpu_identity
+    from gns_bench.sweep.runner import evaluation_data, training_data
+    from gns_bench.sweep.timing import time_runs
+    from gns_bench.tracking import git_sha, hardware_description
+
+    domains = {s.domain: s for s in domain_sweeps()}
+    measured: dict[str, object] = {}
+    rows: list[dict[str, Any]] = []
+    missing: list[str] = []
+    for sweep in baseline_sweeps():
+        ref = domain_reference(sweep.domain)
+        name = ref.name if ref else sweep.domain
+        pair = [("GNS", domains[sweep.domain].plan(tier)[0]),
+                (ARCHITECTURE_NAMES[architecture_of(sweep)], sweep.plan(tier)[0])]
+        absent = [path.name for _, run in pair for path in (training_data(run, data_root),
+                                                             evaluation_data(run, data_root))
+                  if not (path / "metadata.json").is_file()]  # written last: the dataset is complete
+        if absent:
+            missing.append(f"{name} ({pair[1][0]}): no dataset {', '.join(sorted(set(absent)))} in the data root")
+            continue
+        costs = time_runs([run for _, run in pair], {}, data_root, steps=steps, measured=measured, echo=echo)
+        for model, run in pair:
+            if any(r["domain"] == name and r["model"] == model for r in rows):
+                continue  # BOXBATH's GNS stands beside two baselines
+            cost = costs[run.name]
+            rows.append({"domain": name, "model": model, "settings": cost.rate.settings,
+                         "train_seconds_per_step": 1.0 / cost.rate.steps_per_second,
+                         "rollout_seconds_per_step": cost.evaluation.rollout_seconds
+                         / max(cost.evaluation.rollout_steps, 1)})
+    return {"hardware": hardware_description("cpu"), "cpu": cpu_identity(), "date": date.today().isoformat(),
+            "git_sha": git_sha(), "tier": tier, "steps": steps, "rows": rows, "missing": missing}
+
+
+def measured_section(measured: dict[str, Any] | None) -> list[str]:
+    """The table of `measure_costs`: per domain each model's training and rollout time a step, measured on one
+    machine in one sitting, and the baseline's over the GNS's."""
+    if not measured or not measured.get("rows"):
+        return []
+    models = list(ARCHITECTURE_NAMES.values())  # the GNS first
+    rows = sorted(measured["rows"], key=lambda r: (r["domain"], models.index(r["model"])))
+    lines = ["### Measured side by side", "",
+             f"Measured on **{measured['hardware']}** (CPU {measured['cpu']}) on {measured['date']}, at commit "
+             f"`{measured['git_sha'][:10]}`, one model after another: {measured['steps']} steps of each run's own "
+             f"training loop on its {measured['tier']}-tier data (the precision and compile settings it chooses "
+             "there), and its evaluation's rollout steps on the test split (neighbour search included). Unlike the "
+             "table above, every number here comes from the same machine and the same code (`gns-bench report "
+             "baselines --measure-cost`).", "",
+             "| domain | model | training s/step | rollout s/step | training / GNS's | rollout / GNS's | settings |",
+             "|---|---|---|---|---|---|---|"]
+    gns = {r["domain"]: r for r in rows if r["model"] == "GNS"}
+    for r in rows:
+        base = gns.get(r["domain"])
+        over = ((ratio(r["train_seconds_per_step"], base["train_seconds_per_step"]),
+                 ratio(r["rollout_seconds_per_step"], base["rollout_seconds_per_step"]))
+                if base and r["model"] != "GNS" else ("—", "—"))
+        lines.append(f"| {r['domain']} | {r['model']} | {fmt(r['train_seconds_per_step'])} | "
+                     f"{fmt(r['rollout_seconds_per_step'])} | {over[0]} | {over[1]} | {r['settings']} |")
+    if measured.get("missing"):
+        lines += ["", "Not measured: " + "; ".join(measured["missing"]) + "."]
+    return lines + [""]
+
+
 def cost_figure(points: list[Cost], path: Path) -> Path | None:
     """Error against constant velocity's (same steps) over training and rollout time a step, one point per model
     and domain, coloured by model."""
@@ -233,21 +310,31 @@ def cost_figure(points: list[Cost], path: Path) -> Path | None:
     return path
 
 
-def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path) -> list[str]:
+def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path,
+                 measured: dict[str, Any] | None = None) -> list[str]:
     rows = costs(collected)
     if not rows:
         return []
     lines = ["## Cost beside error", "", "Each model's training time a step (its training wall time over its steps, "
              "batch as its config sets it) and rollout time a step, on the machine its runs name, beside its rollout "
-             "MSE against constant velocity's over the same steps (below 1x beats the trivial baseline).", "",
+             "MSE against constant velocity's over the same steps (below 1x beats the trivial baseline). Runs "
+             "trained on different machines, or before a model's code was made faster, do not compare here; the "
+             "times measured side by side below do.", "",
              "| domain | model | training s/step | training time (s) | rollout s/step | against constant velocity, "
              "same steps | hardware |", "|---|---|---|---|---|---|---|"]
     lines += [f"| {c.domain} | {c.model} | {fmt(c.train_seconds_per_step)} | {fmt(c.train_seconds)} | "
               f"{fmt(c.rollout_seconds_per_step)} | {times(c.against_cv)} | {c.hardware} |" for c in rows]
+    same_machine = {(r["domain"], r["model"]): r for r in (measured or {}).get("rows", [])}
+    if same_machine:  # the figure at the times measured side by side: like for like
+        rows = [dataclasses.replace(c, train_seconds_per_step=same_machine[c.domain, c.model]["train_seconds_per_step"],
+                                    rollout_seconds_per_step=same_machine[c.domain, c.model]["rollout_seconds_per_step"])
+                for c in rows if (c.domain, c.model) in same_machine]
     figure = cost_figure(rows, out_dir / "cost_vs_error.png")
     if figure is not None:
-        lines += ["", f"![cost against error]({figure.name})"]
-    return lines + [""]
+        lines += ["", f"![cost against error]({figure.name})", "",
+                  "Times in the figure: " + ("measured side by side on one machine (below); the error, each run's."
+                                             if same_machine else "each run's own, on the machine it names.")]
+    return lines + ["", *measured_section(measured)]
 
 
 def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list[str]:
@@ -373,8 +460,12 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
     return lines, drawn
 
 
-def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None = None) -> Path:
+def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None = None,
+                           measured: dict[str, Any] | None = None) -> Path:
+    """`measured`: a fresh `measure_costs` result; by default the one the summary already keeps."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    extras = read_summary_extras(out_dir / SUMMARY_FILE)
+    measured = measured or extras.get(MEASURED)
     reports_root = reports_root or out_dir.parent.parent
     domains = {s.domain: s for s in domain_sweeps()}
     compare = tier != "smoke"
@@ -388,15 +479,16 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              "CConv figures are read off its bar chart (approximate).", "", *definitions_section(),
              "## Rollout MSE against the paper's", "", HEADER, "|" + "---|" * HEADER.count(" | ") + "---|",
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
-             *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir)]
+             *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir, measured)]
     stand_ins = {d: [r for s in stress_sweeps() if s.domain == d for r in collect(s, tier, reports_root)]
                  for d in FAILURE_DOMAINS}
-    failures, drawn = failure_section(collected, out_dir, read_summary_extras(out_dir / SUMMARY_FILE).get("failures"),
-                                      stand_ins)
+    failures, drawn = failure_section(collected, out_dir, extras.get("failures"), stand_ins)
     lines += failures
-    write_run_summary(out_dir / SUMMARY_FILE, "baselines", tier, [], {"failures": drawn} if drawn else {},
+    kept = {**({"failures": drawn} if drawn else {}), **({MEASURED: measured} if measured else {})}
+    write_run_summary(out_dir / SUMMARY_FILE, "baselines", tier, [], kept,
                       note="written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow "
-                           "no longer holds the runs (their numbers are in each baseline sweep's own summary)")
+                           "no longer holds the runs (their numbers are in each baseline sweep's own summary), and "
+                           "the costs measured side by side (--measure-cost)")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

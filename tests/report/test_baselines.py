@@ -80,6 +80,24 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     page = report.write_sweep_report(baseline, "smoke", tmp_path / "reports" / baseline.name / "smoke").read_text()
     assert "ground truth beside CConv on one frame" in page and "beside the GNS on one frame" not in page
     assert baselines.HEADER in page and baselines.VERDICT_RULE not in page  # smoke: no verdict drawn
+    # cost measured side by side: both models timed here on the tier's data, kept in the report's summary
+    monkeypatch.setattr(report, "domain_sweeps", lambda: [domain])
+    measured = baselines.measure_costs("smoke", tmp_path / "data", steps=3, echo=lambda line: None)
+    timed = {r["model"]: r for r in measured["rows"]}
+    assert set(timed) == {"GNS", "CConv"} and measured["missing"] == []
+    assert all(r["domain"] == "tiny" and r["train_seconds_per_step"] > 0 and r["rollout_seconds_per_step"] > 0
+               for r in timed.values())
+    out = tmp_path / "reports" / "baselines" / "smoke"
+    text = baselines.write_baselines_report("smoke", out, measured=measured).read_text()
+    (cconv_row,) = [line for line in text.splitlines() if line.startswith("| tiny | CConv | ") and "x |" in line]
+    over = timed["CConv"]["train_seconds_per_step"] / timed["GNS"]["train_seconds_per_step"]
+    assert f"| {over:.3g}x |" in cconv_row and "### Measured side by side" in text
+    assert measured["hardware"] in text
+    again = baselines.write_baselines_report("smoke", out).read_text()  # not measured again: the table is kept
+    assert cconv_row in again.splitlines()
+    nothing = baselines.measure_costs("smoke", tmp_path / "no-data", steps=3, echo=lambda line: None)
+    assert nothing["rows"] == [] and len(nothing["missing"]) == 1 and "no dataset tiny-smoke-s0" in nothing["missing"][0]
+    assert "### Measured side by side" not in "\n".join(baselines.measured_section(nothing))
 
 
 @pytest.mark.parametrize(("gns", "baseline", "gns_steps", "baseline_steps", "verdict"), [
