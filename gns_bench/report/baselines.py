@@ -216,12 +216,13 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
     (`sweep.timing.time_runs`), and its evaluation's rollout steps (`evaluate.cost`). A run's own training
     time is measured on whatever machine trained it; these are all measured here, in one sitting.
     Comparisons whose data is not generated are left out (`missing`)."""
-    from gns_bench.devices import cpu_identity
+    from gns_bench.devices import cpu_identity, resolve_device
     from gns_bench.sweep.runner import evaluation_data, training_data
     from gns_bench.sweep.timing import time_runs
     from gns_bench.tracking import git_sha, hardware_description
 
     domains = {s.domain: s for s in domain_sweeps()}
+    devices: set[str] = set()
     measured: dict[str, object] = {}
     rows: list[dict[str, Any]] = []
     missing: list[str] = []
@@ -236,6 +237,7 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
         if absent:
             missing.append(f"{name} ({pair[1][0]}): no dataset {', '.join(sorted(set(absent)))} in the data root")
             continue
+        devices.update(str(resolve_device(run.config.train.device)) for _, run in pair)
         costs = time_runs([run for _, run in pair], {}, data_root, steps=steps, measured=measured, echo=echo)
         for model, run in pair:
             if any(r["domain"] == name and r["model"] == model for r in rows):
@@ -245,7 +247,8 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
                          "train_seconds_per_step": 1.0 / cost.rate.steps_per_second,
                          "rollout_seconds_per_step": cost.evaluation.rollout_seconds
                          / max(cost.evaluation.rollout_steps, 1)})
-    return {"hardware": hardware_description("cpu"), "cpu": cpu_identity(), "date": date.today().isoformat(),
+    hardware = "; ".join(hardware_description(d) for d in sorted(devices or {"cpu"}))
+    return {"hardware": hardware, "cpu": cpu_identity(), "date": date.today().isoformat(),
             "git_sha": git_sha(), "tier": tier, "steps": steps, "rows": rows, "missing": missing}
 
 
@@ -256,13 +259,14 @@ def measured_section(measured: dict[str, Any] | None) -> list[str]:
         return []
     models = list(ARCHITECTURE_NAMES.values())  # the GNS first
     rows = sorted(measured["rows"], key=lambda r: (r["domain"], models.index(r["model"])))
+    dirty = " (with uncommitted changes)" if measured["git_sha"].endswith("-dirty") else ""
     lines = ["### Measured side by side", "",
              f"Measured on **{measured['hardware']}** (CPU {measured['cpu']}) on {measured['date']}, at commit "
-             f"`{measured['git_sha'][:10]}`, one model after another: {measured['steps']} steps of each run's own "
-             f"training loop on its {measured['tier']}-tier data (the precision and compile settings it chooses "
-             "there), and its evaluation's rollout steps on the test split (neighbour search included). Unlike the "
-             "table above, every number here comes from the same machine and the same code (`gns-bench report "
-             "baselines --measure-cost`).", "",
+             f"`{measured['git_sha'][:10]}`{dirty}, one model after another: {measured['steps']} steps of each "
+             f"run's own training loop on its {measured['tier']}-tier data (the precision and compile settings it "
+             "chooses there), and its evaluation's rollout steps on the test split (neighbour search included). "
+             "Unlike the table above, every number here comes from the same machine and the same code (`gns-bench "
+             "report baselines --measure-cost`).", "",
              "| domain | model | training s/step | rollout s/step | training / GNS's | rollout / GNS's | settings |",
              "|---|---|---|---|---|---|---|"]
     gns = {r["domain"]: r for r in rows if r["model"] == "GNS"}
@@ -326,8 +330,8 @@ def cost_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], 
               f"{fmt(c.rollout_seconds_per_step)} | {times(c.against_cv)} | {c.hardware} |" for c in rows]
     same_machine = {(r["domain"], r["model"]): r for r in (measured or {}).get("rows", [])}
     if same_machine:  # the figure at the times measured side by side: like for like
-        rows = [dataclasses.replace(c, train_seconds_per_step=same_machine[c.domain, c.model]["train_seconds_per_step"],
-                                    rollout_seconds_per_step=same_machine[c.domain, c.model]["rollout_seconds_per_step"])
+        rows = [dataclasses.replace(c, **{k: same_machine[c.domain, c.model][k] for k in
+                                          ("train_seconds_per_step", "rollout_seconds_per_step")})
                 for c in rows if (c.domain, c.model) in same_machine]
     figure = cost_figure(rows, out_dir / "cost_vs_error.png")
     if figure is not None:

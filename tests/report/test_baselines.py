@@ -96,7 +96,8 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     again = baselines.write_baselines_report("smoke", out).read_text()  # not measured again: the table is kept
     assert cconv_row in again.splitlines()
     nothing = baselines.measure_costs("smoke", tmp_path / "no-data", steps=3, echo=lambda line: None)
-    assert nothing["rows"] == [] and len(nothing["missing"]) == 1 and "no dataset tiny-smoke-s0" in nothing["missing"][0]
+    assert nothing["rows"] == [] and len(nothing["missing"]) == 1
+    assert "no dataset tiny-smoke-s0" in nothing["missing"][0]
     assert "### Measured side by side" not in "\n".join(baselines.measured_section(nothing))
 
 
