@@ -44,6 +44,11 @@ def dataset_path(domain: str, tier: str, seed: int = 0, data_root: str | Path = 
     return Path(data_root) / f"{domain}-{tier}-s{seed}"
 
 
+def dataset_complete(path: str | Path) -> bool:
+    """Whether the dataset directory `path` is complete: its `metadata.json` is written last, after every split."""
+    return (Path(path) / "metadata.json").is_file()
+
+
 def ensure_dataset(domain: str, tier: str, seed: int = 0, data_root: str | Path = "data", *,
                    out: str | Path | None = None, progress: bool = True) -> Path:
     """The dataset for (domain, tier, seed) at `out` (default `dataset_path`): reused when complete,
@@ -52,7 +57,7 @@ def ensure_dataset(domain: str, tier: str, seed: int = 0, data_root: str | Path 
     on stderr) and generates it afresh. An unknown domain id raises UnknownDomainError."""
     check_domain(domain)
     out = Path(out) if out is not None else dataset_path(domain, tier, seed, data_root)
-    complete = (out / "metadata.json").exists()
+    complete = dataset_complete(out)
     if domain == TINY:
         return out if complete else generate_tiny(out, tier, seed)
     if complete and stale_generator_version(out) is None:

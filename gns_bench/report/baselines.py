@@ -216,6 +216,7 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
     (`sweep.timing.time_runs`), and its evaluation's rollout steps (`evaluate.cost`). A run's own training
     time is measured on whatever machine trained it; these are all measured here, in one sitting.
     Comparisons whose data is not generated are left out (`missing`)."""
+    from gns_bench.datasets import dataset_complete
     from gns_bench.devices import cpu_identity, resolve_device
     from gns_bench.sweep.runner import evaluation_data, training_data
     from gns_bench.sweep.timing import time_runs
@@ -233,7 +234,7 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
                 (ARCHITECTURE_NAMES[architecture_of(sweep)], sweep.plan(tier)[0])]
         absent = [path.name for _, run in pair for path in (training_data(run, data_root),
                                                              evaluation_data(run, data_root))
-                  if not (path / "metadata.json").is_file()]  # written last: the dataset is complete
+                  if not dataset_complete(path)]
         if absent:
             missing.append(f"{name} ({pair[1][0]}): no dataset {', '.join(sorted(set(absent)))} in the data root")
             continue

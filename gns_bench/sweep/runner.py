@@ -33,7 +33,7 @@ from pathlib import Path
 from gns_bench import tracking
 from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
-from gns_bench.datasets import dataset_path, default_connectivity_radius, ensure_dataset
+from gns_bench.datasets import dataset_complete, dataset_path, default_connectivity_radius, ensure_dataset
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 from gns_bench.sweep.summaries import RESTORED_FROM, summarised_runs
@@ -313,7 +313,7 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
 
 def _datasets_made(datasets: Iterable[tuple[str, str]], seed: int, data_root: Path) -> bool:
     """Whether every (domain, tier) dataset is complete under `data_root` (its metadata is written last)."""
-    return all((dataset_path(domain, tier, seed, data_root) / "metadata.json").exists() for domain, tier in datasets)
+    return all(dataset_complete(dataset_path(domain, tier, seed, data_root)) for domain, tier in datasets)
 
 
 STRESSED = "stress tests of"  # the status of a stress run whose model another sweep trained
