@@ -46,7 +46,7 @@ from gns_bench.report.collect import (  # noqa: E402
     mean_std,
     stress_sweeps,
 )
-from gns_bench.report.reference import domain_reference  # noqa: E402
+from gns_bench.report.reference import display_name, domain_reference  # noqa: E402
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
@@ -149,7 +149,7 @@ def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow],
     architecture = architecture_of(sweep)
     paper_cconv = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
     like = compare(gns_rows, best)
-    return [f"{ref.name if ref else sweep.domain} ({architecture})", fmt(gns),
+    return [f"{display_name(sweep.domain)} ({architecture})", fmt(gns),
             fmt(ours) + (f" (`{best.planned.name}`)" if best else ""),
             f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare_runs and best and gns > 0 else "—",
             f"{times(like.gns)} / {times(like.baseline)}" if compare_runs else "—",
@@ -192,8 +192,7 @@ def costs(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list
     """Per comparison domain, the GNS's cost (its domain runs, once a domain) and each baseline's best run's."""
     out, seen = [], set()
     for sweep, rows, gns_rows in collected:
-        ref = domain_reference(sweep.domain)
-        name = ref.name if ref else sweep.domain
+        name = display_name(sweep.domain)
         best = best_run(rows)
         for model, model_rows in (("GNS", gns_rows), (ARCHITECTURE_NAMES[architecture_of(sweep)],
                                                       [best] if best else [])):
@@ -228,8 +227,7 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
     rows: list[dict[str, Any]] = []
     missing: list[str] = []
     for sweep in baseline_sweeps():
-        ref = domain_reference(sweep.domain)
-        name = ref.name if ref else sweep.domain
+        name = display_name(sweep.domain)
         pair = [("GNS", domains[sweep.domain].plan(tier)[0]),
                 (ARCHITECTURE_NAMES[architecture_of(sweep)], sweep.plan(tier)[0])]
         absent = [path.name for _, run in pair for path in (training_data(run, data_root),
@@ -351,7 +349,7 @@ def verdict_lines(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]])
 def verdict_line(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow]) -> str:
     """Does the GNS beat this baseline sweep's best run here (`Comparison.verdict`), and did it in the paper."""
     ref = domain_reference(sweep.domain)
-    name, architecture = ref.name if ref else sweep.domain, architecture_of(sweep)
+    name, architecture = display_name(sweep.domain), architecture_of(sweep)
     like = compare(gns_rows, best_run(rows))
     baseline = ARCHITECTURE_NAMES[architecture]
     if like.verdict == "—":
@@ -437,12 +435,12 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                      if rollouts and rollouts[0].predicted.shape[0]]
             if len(shown) > 1 and shown[0][0] == ARCHITECTURE_NAMES["gns"]:
                 figures.rollout_strip(shown, out_dir / f"{domain}_strip.png",
-                                      f"{domain_reference(domain).name}: test trajectory 0, every model's rollout")
+                                      f"{display_name(domain)}: test trajectory 0, every model's rollout")
                 record["strip"] = [name for name, _ in shown]
         if not record:
             continue
         drawn[domain] = record
-        name = domain_reference(domain).name
+        name = display_name(domain)
         lines += [f"## {name}: the failure the paper shows", "",
                   f"In the paper (Sec. 5.5) {FAILURE_WORDS[domain]}.", ""]
         if record.get("gns_from"):

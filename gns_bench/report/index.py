@@ -29,7 +29,7 @@ from gns_bench.report.cells import (
     times,
 )
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
-from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
+from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.verdict import ERROR, ONE_STEP, judge_axis
 from gns_bench.sweep.campaigns import CAMPAIGNS_DIR, load_campaign
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
@@ -152,7 +152,7 @@ def baseline_claims(reports_root: Path) -> list[str]:
         paper_baseline = ref.cconv_rollout_mse if ref and key == "cconv" else None
         paper = (f"{architecture} / GNS = {fmt(paper_baseline / ref.rollout_mse)}x" if paper_baseline
                  else "GNS learns the cube's rigidity, DPI-Net builds it in")
-        claim = f"{ref.name if ref else sweep.domain}: GNS against {architecture} (Sec. 5.5)"
+        claim = f"{display_name(sweep.domain)}: GNS against {architecture} (Sec. 5.5)"
         if not tier:
             lines.append(f"| {claim} | — | no result yet | {paper} | — | — |")
             continue

@@ -60,3 +60,9 @@ def domain_reference(domain_id: str) -> DomainReference | None:
     cconv = paper_reference()["cconv_rollout_mse"].get(domain_id)
     return DomainReference(domain_id, spec.name, paper.simulator, spec.dim, paper.max_particles,
                            paper.sequence_length, paper.one_step_mse, paper.rollout_mse, cconv)
+
+
+def display_name(domain_id: str) -> str:
+    """The domain as the paper names it (Table 1), or its id where the paper lacks it."""
+    ref = domain_reference(domain_id)
+    return ref.name if ref else domain_id

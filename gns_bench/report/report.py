@@ -49,7 +49,7 @@ from gns_bench.report.collect import (
     resolve_sweep,
 )
 from gns_bench.report.index import write_index
-from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
+from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
 from gns_bench.report.verdict import ERROR, ONE_STEP, STEPS_BEFORE_STOP, judge_axis
@@ -78,7 +78,7 @@ def accuracy_row(sweep: SweepSpec, rows: list[RunRow], compare: bool) -> list[st
     rollout, _, seeds = mean_std([r.metric("rollout_mse") for r in rows])
     stopped = any_stopped(rows)
     done = any(r.ok for r in rows)
-    return [ref.name if ref else sweep.domain, ref.simulator if ref else "—",
+    return [display_name(sweep.domain), ref.simulator if ref else "—",
             f"{ref.max_particles:,}" if ref else "—", str(ref.sequence_length) if ref else "—",
             fmt(one_step) if done else MISSING, fmt(ref.one_step_mse) if ref else "—",
             ratio(one_step, ref.one_step_mse if ref else None) if compare else "—",
@@ -89,18 +89,16 @@ def accuracy_row(sweep: SweepSpec, rows: list[RunRow], compare: bool) -> list[st
 
 
 def distribution_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
-    ref = domain_reference(sweep.domain)
-    return [ref.name if ref else sweep.domain,
+    return [display_name(sweep.domain),
             *(fmt(mean_std([r.metric(m) for r in rows])[0]) for m in ("ot", "mmd", "kinetic_energy_error")),
             steps_covered(rows)]
 
 
 def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
-    ref = domain_reference(sweep.domain)
     done = [r for r in rows if r.ok]
     steps = sorted({int(r.metric("train/final_step")) for r in done if math.isfinite(r.metric("train/final_step"))})
     wall = mean_std([r.metric("train/wall_time_s") for r in done])[0]
-    return [ref.name if ref else sweep.domain, "/".join(f"{s:,}" for s in steps) or "—",
+    return [display_name(sweep.domain), "/".join(f"{s:,}" for s in steps) or "—",
             "/".join(sorted({used_precision(r) for r in done})) or "—",
             fmt(wall / 60) + shared_cores_mark(done),
             machines(done) or "—",
@@ -129,7 +127,7 @@ def inference_section(collected: list[tuple[SweepSpec, list[RunRow]]]) -> list[s
         ours_cell = fmt(ours) if any(r.ok for r in rows) else MISSING
         gns, solver = ((f"{paper[k][0]:g}-{paper[k][1]:g}" for k in ("gns_seconds", "solver_seconds")) if paper
                        else ("—", "—"))
-        lines.append(f"| {ref.name if ref else sweep.domain} | {ours_cell} | {hardware} | {gns} | {solver} |")
+        lines.append(f"| {display_name(sweep.domain)} | {ours_cell} | {hardware} | {gns} | {solver} |")
     return lines + ["", "The paper's times are per step on a V100 (GNS) and a 6-core CPU (solver), ranges over its "
                         "domains of that kind; ours are on the hardware listed, at our model and dataset size."]
 

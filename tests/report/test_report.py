@@ -21,7 +21,7 @@ from gns_bench.report import write_all_reports, write_report
 from gns_bench.report.cells import budget_statement, cv_ratio, mean_cell
 from gns_bench.report.collect import collect, domain_sweeps, load_rollouts
 from gns_bench.report.figures import pareto_front
-from gns_bench.report.reference import ablation_reference, domain_reference, inference_reference
+from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.report import accuracy_row, write_domains_report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
@@ -196,6 +196,7 @@ def test_pareto_front_and_references() -> None:
     assert ablation_reference("model.latent_size")["no_effect"] is True  # App. C.1
     assert ablation_reference("model.message_passing_steps")["scale"] == "linear"
     assert domain_reference("tiny") is None
+    assert display_name("tiny") == "tiny" and display_name("water-3d-s") == "WATER-3D-S"
     water = domain_reference("waterdrop")
     assert water.rollout_mse == pytest.approx(7.01e-3) and water.cconv_rollout_mse == pytest.approx(18e-3)
     assert inference_reference(2, "MPM (2D)")["gns_seconds"] == [0.025, 0.059]
