@@ -407,10 +407,11 @@ FAILURE_WORDS = {"boxbath": "CConv lets the cube lose its shape, and DPI-Net kee
 def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path,
                     previous: dict | None, stand_ins: dict[str, list[RunRow]] | None = None) -> tuple[list[str], dict]:
     """For each of `FAILURE_DOMAINS` with runs: test trajectory 0 as the GNS and each baseline's best run rolled
-    it out (`<domain>_strip.png`), and on BOXBATH the cube's rigidity drift of every model. Returns the lines
-    and what was drawn, which the summary keeps: when MLflow no longer holds the rollouts, the pictures the
-    last report drew stand (`previous`, that summary's record). `stand_ins`: per domain, the stress sweeps' runs
-    whose rollouts stand in for the GNS's when its own are gone (`gns_rollouts`)."""
+    it out (`<domain>_strip.png`: every model whose rollouts are here, the missing ones named), and on BOXBATH
+    the cube's rigidity drift of every model. Returns the lines and what was drawn, which the summary keeps:
+    when MLflow no longer holds the rollouts, the pictures the last report drew stand (`previous`, that
+    summary's record). `stand_ins`: per domain, the stress sweeps' runs whose rollouts stand in for the GNS's
+    when its own are gone (`gns_rollouts`)."""
     lines, drawn = [], {}
     for domain in FAILURE_DOMAINS:
         here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
@@ -433,7 +434,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                 record["rigidity"] = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
             shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
                      if rollouts and rollouts[0].predicted.shape[0]]
-            if len(shown) > 1 and shown[0][0] == ARCHITECTURE_NAMES["gns"]:
+            if shown:  # the baselines alone where the GNS's rollouts are gone: the failure is theirs to show
                 figures.rollout_strip(shown, out_dir / f"{domain}_strip.png",
                                       f"{display_name(domain)}: test trajectory 0, every model's rollout")
                 record["strip"] = [name for name, _ in shown]

@@ -162,10 +162,13 @@ def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row, []))
     lines, drawn = baselines.failure_section([(cconv, ["cconv run"], ["gns run"])], tmp_path, previous=None)
-    assert drawn == {"boxbath": {"missing": {"GNS": baselines.MISSING_ROLLOUTS}, "rigidity": ["CConv"]}}
+    assert drawn == {"boxbath": {"missing": {"GNS": baselines.MISSING_ROLLOUTS}, "rigidity": ["CConv"],
+                                 "strip": ["CConv"]}}
     assert f"Not drawn: GNS ({baselines.MISSING_ROLLOUTS})." in lines
     assert any(line.endswith("CConv neither. Drawn: CConv.") for line in lines)
-    assert (tmp_path / "boxbath_rigidity.png").is_file() and not (tmp_path / "boxbath_strip.png").exists()
+    # the baseline's rollout is still drawn against the ground truth: the failure the paper shows is CConv's
+    assert (tmp_path / "boxbath_rigidity.png").is_file() and (tmp_path / "boxbath_strip.png").is_file()
+    assert "![BOXBATH: every model's rollout](boxbath_strip.png)" in lines
     # a GNS that has not run at all is said to be so
     lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [])], tmp_path, previous=None)
     assert drawn["boxbath"]["missing"] == {"GNS": "not run yet"}
