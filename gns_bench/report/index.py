@@ -164,9 +164,12 @@ def baseline_claims(reports_root: Path) -> list[str]:
         verdict = {"yes": "GNS better" + (", as in the paper" if paper_baseline else ""),
                    "no": f"{architecture} better" + (": not reproduced" if paper_baseline else ""),
                    "mixed": "mixed (lower error and longer rollouts split)", "—": "—"}[like.verdict]
-        lines.append(f"| {claim} | {tier} | {architecture} / GNS = {ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)}); "
-                     f"against constant velocity, same steps: GNS {times(like.gns)}, {architecture} "
-                     f"{times(like.baseline)} | {paper} | {verdict} | {_link(sweep.name, tier)} |")
+        # like for like first (the verdict's terms); the raw ratio last, as each covers its own rollout steps
+        lines.append(f"| {claim} | {tier} | against constant velocity, same steps: GNS {times(like.gns)}, "
+                     f"{architecture} {times(like.baseline)}; rollout steps before a stop: GNS "
+                     f"{fmt(like.gns_steps)}, {architecture} {fmt(like.baseline_steps)}; raw rollout MSE, each over "
+                     f"its own steps: {architecture} / GNS = {ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)}) "
+                     f"| {paper} | {verdict} | {_link(sweep.name, tier)} |")
     return lines
 
 

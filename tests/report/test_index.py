@@ -6,7 +6,7 @@ import json
 import shutil
 from pathlib import Path
 
-from gns_bench.report.index import domain_claim, write_index
+from gns_bench.report.index import baseline_claims, domain_claim, write_index
 from gns_bench.sweep.spec import SWEEPS_DIR
 
 REPORTS = SWEEPS_DIR.parent / "reports"
@@ -70,3 +70,20 @@ def test_what_is_left_is_extrapolated_per_cpu_generation_where_runs_came_from_se
                                "CPU family 26, model 17's 2 runs: 2.0 h)")
     assert _to_go(4, runs[:2]) == "4 models, about 2.0 h"
     assert _to_go(0, runs) == "none"
+
+
+def test_a_baseline_row_leads_with_the_like_for_like_comparison(tmp_path: Path) -> None:
+    """Sec. 5.5 on GOOP from the committed cpu summaries: the GNS and CConv rollouts ran different numbers of steps
+    before a monitor stopped them, so the row leads with the errors against constant velocity over the same steps
+    and the steps covered (the verdict's terms), and gives the raw rollout-MSE ratio last, said to be over each
+    model's own steps."""
+    for sweep in ("domain-goop", "baseline-cconv-goop"):
+        (tmp_path / sweep / "cpu").mkdir(parents=True)
+        shutil.copy(REPORTS / sweep / "cpu" / "runs.json", tmp_path / sweep / "cpu" / "runs.json")
+    (row,) = [line for line in baseline_claims(tmp_path) if line.startswith("| GOOP: GNS against CConv")]
+    ours = row.split(" | ")[2]
+    like, steps, raw = ours.split("; ")
+    assert like.startswith("against constant velocity, same steps: GNS ") and ", CConv " in like
+    assert steps.startswith("rollout steps before a stop: GNS ") and ", CConv " in steps
+    assert raw.startswith("raw rollout MSE, each over its own steps: CConv / GNS = ")
+    assert "no result yet" in [line for line in baseline_claims(tmp_path) if "SAND: GNS against CConv" in line][0]
