@@ -435,9 +435,9 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
                      if rollouts and rollouts[0].predicted.shape[0]]
             if shown:  # the baselines alone where the GNS's rollouts are gone: the failure is theirs to show
-                figures.rollout_strip(shown, out_dir / f"{domain}_strip.png", f"{display_name(domain)}: test "
-                                      f"trajectory 0 as {', '.join(name for name, _ in shown)} rolled it out")
                 record["strip"] = [name for name, _ in shown]
+                figures.rollout_strip(shown, out_dir / f"{domain}_strip.png", f"{display_name(domain)}: test "
+                                      f"trajectory 0 as {', '.join(record['strip'])} rolled it out")
         if not record:
             continue
         drawn[domain] = record

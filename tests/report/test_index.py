@@ -80,10 +80,11 @@ def test_a_baseline_row_leads_with_the_like_for_like_comparison(tmp_path: Path) 
     for sweep in ("domain-goop", "baseline-cconv-goop"):
         (tmp_path / sweep / "cpu").mkdir(parents=True)
         shutil.copy(REPORTS / sweep / "cpu" / "runs.json", tmp_path / sweep / "cpu" / "runs.json")
-    (row,) = [line for line in baseline_claims(tmp_path) if line.startswith("| GOOP: GNS against CConv")]
+    claims = baseline_claims(tmp_path)
+    (row,) = [line for line in claims if line.startswith("| GOOP: GNS against CConv")]
     ours = row.split(" | ")[2]
     like, steps, raw = ours.split("; ")
     assert like.startswith("against constant velocity, same steps: GNS ") and ", CConv " in like
     assert steps.startswith("rollout steps before a stop: GNS ") and ", CConv " in steps
     assert raw.startswith("raw rollout MSE, each over its own steps: CConv / GNS = ")
-    assert "no result yet" in [line for line in baseline_claims(tmp_path) if "SAND: GNS against CConv" in line][0]
+    assert "no result yet" in [line for line in claims if "SAND: GNS against CConv" in line][0]
