@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from gns_bench.config import ARCHITECTURE_NAMES, StressConfig  # noqa: E402
 from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
-from gns_bench.evaluate.plots import STEP_LABEL, config_colour  # noqa: E402
+from gns_bench.evaluate.plots import STEP_LABEL, config_colours  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
 from gns_bench.report import figures  # noqa: E402
 from gns_bench.report.cells import (  # noqa: E402
@@ -281,6 +281,11 @@ def measured_section(measured: dict[str, Any] | None) -> list[str]:
     return lines + [""]
 
 
+# One colour per model in every figure of this report, distinct by construction (`config_colours` of the
+# display names; the architectures' keys would hash GNS and DPI-Net onto one colour).
+MODEL_COLOURS = config_colours(ARCHITECTURE_NAMES.values())
+
+
 def cost_figure(points: list[Cost], path: Path) -> Path | None:
     """Error against constant velocity's (same steps) over training and rollout time a step, one point per model
     and domain, coloured by model."""
@@ -295,7 +300,7 @@ def cost_figure(points: list[Cost], path: Path) -> Path | None:
         for model in models:
             mine = [c for c in points if c.model == model]
             ax.scatter([getattr(c, attribute) for c in mine], [c.against_cv for c in mine], s=24,
-                       color=config_colour(model), label=model, zorder=3)
+                       color=MODEL_COLOURS.get(model, "0.4"), label=model, zorder=3)
             for c in mine:
                 ax.annotate(c.domain, (getattr(c, attribute), c.against_cv), fontsize=6, xytext=(3, 3),
                             textcoords="offset points")
@@ -378,13 +383,17 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> l
             continue
         length = min(len(c[0]) for c in curves)
         model = np.nanmean([c[0][:length] for c in curves], axis=0)
-        ax.plot(np.arange(length), model, color=config_colour(name), label=ARCHITECTURE_NAMES.get(name, name))
+        label = ARCHITECTURE_NAMES.get(name, name)
+        # wide, under the truth's thin dashes: a model that keeps the cube rigid (DPI-Net, by construction) lies
+        # on the ground truth's line and must still show
+        ax.plot(np.arange(length), model, color=MODEL_COLOURS.get(label, "0.4"), lw=2.4, zorder=2,
+                label=f"{label} (at step {length - 1}: {model[-1]:.3g})")
         truth = truth if truth is not None else np.nanmean([c[1][:length] for c in curves], axis=0)
-        drawn.append(ARCHITECTURE_NAMES.get(name, name))
+        drawn.append(label)
     if not drawn:
         plt.close(fig)
         return []
-    ax.plot(np.arange(len(truth)), truth, color="k", ls="--", label="ground truth")
+    ax.plot(np.arange(len(truth)), truth, color="k", ls="--", lw=1.0, zorder=3, label="ground truth")
     ax.set_xlabel(STEP_LABEL)
     ax.set_ylabel("rigidity drift (relative)")
     ax.set_title("BOXBATH: the cube's shape over a rollout (0: rigid)", fontsize=9)

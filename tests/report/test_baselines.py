@@ -200,3 +200,9 @@ def test_a_stress_sweeps_retraining_of_the_same_model_stands_in_for_gone_gns_rol
     _, drawn = baselines.failure_section([(cconv, ["cconv run"], [gns])], tmp_path, previous=None,
                                          stand_ins={"boxbath": [longer]})
     assert drawn["boxbath"]["missing"] == {"GNS": baselines.MISSING_ROLLOUTS}
+
+
+def test_every_model_has_its_own_colour_in_the_comparison_figures() -> None:
+    # the rigidity figure once drew the GNS and DPI-Net in one pink (their keys hash to one palette slot)
+    colours = [baselines.MODEL_COLOURS[name] for name in ("GNS", "CConv", "DPI-Net")]
+    assert len(set(colours)) == 3
