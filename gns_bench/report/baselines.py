@@ -372,28 +372,36 @@ def _rollouts(row: RunRow | None, workdir: Path) -> list[RolloutResult]:
     return load_rollouts(row.artifact_run_id, f"evaluation/{row.split}_rollouts.npz", workdir)
 
 
-def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> list[str]:
-    """BOXBATH: the cube's drift (mean over test trajectories) for each model and the ground truth. Returns the
-    names of the models drawn (none: no figure written)."""
+def rigidity_means(rollouts: list[RolloutResult]) -> dict[str, list[float]] | None:
+    """BOXBATH: the cube's drift of one model, mean over its test rollouts, and the ground truth's over the same
+    steps (to the shortest rollout: a monitor's stop ends one early); None without a rigid body. Plain lists:
+    the report's summary keeps them, so the figure is redrawn when the rollouts are gone."""
+    curves = [c for r in rollouts if (c := figures.rigidity_curves(r, RIGID_PARTICLE_TYPE)) is not None]
+    if not curves:
+        return None
+    length = min(len(c[0]) for c in curves)
+    def compact(values: np.ndarray) -> list[float]:  # 4 significant digits: the figure's resolution, a small file
+        return [float(f"{v:.4g}") for v in values]
+
+    return {"model": compact(np.nanmean([c[0][:length] for c in curves], axis=0)),
+            "truth": compact(np.nanmean([c[1][:length] for c in curves], axis=0))}
+
+
+def rigidity_comparison(means: dict[str, dict[str, list[float]]], path: Path) -> list[str]:
+    """BOXBATH: the cube's drift (`rigidity_means`) for each model (keyed by display name) and the ground truth,
+    one figure. Returns the names of the models drawn (none: no figure written)."""
+    drawn = [name for name, curve in means.items() if curve]
+    if not drawn:
+        return []
     fig, ax = plt.subplots(figsize=(5.6, 3.6), layout="constrained")
-    drawn, truth = [], None
-    for name, rollouts in models.items():
-        curves = [c for r in rollouts if (c := figures.rigidity_curves(r, RIGID_PARTICLE_TYPE)) is not None]
-        if not curves:
-            continue
-        length = min(len(c[0]) for c in curves)
-        model = np.nanmean([c[0][:length] for c in curves], axis=0)
-        label = ARCHITECTURE_NAMES.get(name, name)
+    for name in drawn:
+        model = np.asarray(means[name]["model"], float)
         # wide, under the truth's thin dashes: a model that keeps the cube rigid (DPI-Net, by construction) lies
         # on the ground truth's line and must still show
-        ax.plot(np.arange(length), model, color=MODEL_COLOURS.get(label, "0.4"), lw=2.4, zorder=2,
-                label=f"{label} (at step {length - 1}: {model[-1]:.3g})")
-        truth = truth if truth is not None else np.nanmean([c[1][:length] for c in curves], axis=0)
-        drawn.append(label)
-    if not drawn:
-        plt.close(fig)
-        return []
-    ax.plot(np.arange(len(truth)), truth, color="k", ls="--", lw=1.0, zorder=3, label="ground truth")
+        ax.plot(np.arange(model.size), model, color=MODEL_COLOURS.get(name, "0.4"), lw=2.4, zorder=2,
+                label=f"{name} (at step {model.size - 1}: {model[-1]:.3g})")
+    truth = max((np.asarray(means[n]["truth"], float) for n in drawn), key=len)
+    ax.plot(np.arange(truth.size), truth, color="k", ls="--", lw=1.0, zorder=3, label="ground truth")
     ax.set_xlabel(STEP_LABEL)
     ax.set_ylabel("rigidity drift (relative)")
     ax.set_title("BOXBATH: the cube's shape over a rollout (0: rigid)", fontsize=9)
@@ -402,6 +410,13 @@ def rigidity_comparison(models: dict[str, list[RolloutResult]], path: Path) -> l
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return drawn
+
+
+def kept_rigidity(previous: dict, name: str, row: RunRow | None) -> dict[str, list[float]] | None:
+    """The drift curve the last report kept for model `name`, if it was drawn from the run that is still this
+    model's best (`row`): a rerun's or another run's curve would be the wrong one."""
+    kept = previous.get("rigidity_curves", {}).get(name)
+    return kept if kept and row is not None and kept.get("run_id") == row.run_id else None
 
 
 # Where the paper shows a baseline failing (Sec. 5.5): CConv's cube losing its shape on BOXBATH and its goop
@@ -431,7 +446,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             gns, gns_from = gns_rollouts(best["gns"], (stand_ins or {}).get(domain, []), Path(tmp))
             models = {"gns": gns, **{name: _rollouts(row, Path(tmp) / name) for name, row in best.items()
                                      if name != "gns"}}
-        record = (previous or {}).get(domain, {})
+        record = before = (previous or {}).get(domain, {})
         if any(models.values()):  # drawn afresh; else the last report's pictures stand
             record = {"gns_from": gns_from} if gns_from else {}
             # a model without rollouts here is left out of the pictures, and the report says why
@@ -440,7 +455,22 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             if missing:
                 record["missing"] = missing
             if domain == "boxbath":
-                record["rigidity"] = rigidity_comparison(models, out_dir / "boxbath_rigidity.png")
+                # each model's curve from its rollouts here, else the one the last report kept of the same run
+                curves = {}
+                for key, rollouts in models.items():
+                    name, row = ARCHITECTURE_NAMES[key], best[key]
+                    means = rigidity_means(rollouts)
+                    if means and row is not None:
+                        curves[name] = {**means, "run_id": row.run_id,
+                                        **({"drawn_from": gns_from} if key == "gns" and gns_from else {})}
+                    elif (kept := kept_rigidity(before, name, row)) is not None:
+                        curves[name] = kept
+                record["rigidity"] = rigidity_comparison(curves, out_dir / "boxbath_rigidity.png")
+                if curves:
+                    record["rigidity_curves"] = curves
+                kept_names = [name for name in record["rigidity"] if name in missing]
+                if kept_names:
+                    record["rigidity_kept"] = kept_names
             shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
                      if rollouts and rollouts[0].predicted.shape[0]]
             if shown:  # the baselines alone where the GNS's rollouts are gone: the failure is theirs to show
@@ -467,7 +497,13 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             lines += ["The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
                       "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
                       "built in (a rigid projection and root nodes), CConv neither."
-                      + (f" Drawn: {', '.join(record['rigidity'])}." if isinstance(record["rigidity"], list) else ""),
+                      + (f" Drawn: {', '.join(record['rigidity'])}." if isinstance(record["rigidity"], list) else "")
+                      + (f" The curve of {', '.join(record['rigidity_kept'])} is the one the last report drew from "
+                         "the same run and kept in its summary (`runs.json`): the rollouts themselves are gone."
+                         if record.get("rigidity_kept") else "")
+                      + "".join(f" {name}'s curve: {curve['drawn_from']}." for name, curve in
+                                record.get("rigidity_curves", {}).items()
+                                if curve.get("drawn_from") and name in record.get("rigidity_kept", [])),
                       "",
                       "![rigidity](boxbath_rigidity.png)", ""]
     return lines, drawn

@@ -144,6 +144,12 @@ def test_the_failure_the_paper_shows_is_drawn_model_beside_model(tmp_path: Path,
     assert baselines.failure_section([(sand, ["cconv run"], ["gns run"])], tmp_path, previous=None) == ([], {})
 
 
+@dataclasses.dataclass(frozen=True)
+class _Row:
+    """A run as the failure section sees it once `best_run` picked it (monkeypatched): its id."""
+    run_id: str
+
+
 def _swelling_cube(steps: int) -> RolloutResult:
     """BOXBATH-like: a rigid cube (type 0) that the model swells by 1% a step while the truth holds it."""
     axis = np.arange(4) * 0.02
@@ -160,17 +166,22 @@ def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path
     cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
     rollouts = {"cconv run": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
-    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row, []))
-    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], ["gns run"])], tmp_path, previous=None)
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", row), []))
+    lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path, previous=None)
+    curves = drawn["boxbath"].pop("rigidity_curves")
     assert drawn == {"boxbath": {"missing": {"GNS": baselines.MISSING_ROLLOUTS}, "rigidity": ["CConv"],
                                  "strip": ["CConv"]}}
+    # the curve the summary keeps: the cube swells 1% a step (drift 0.01 t), the truth holds it (0)
+    assert list(curves) == ["CConv"] and curves["CConv"]["run_id"] == "cconv run"
+    assert curves["CConv"]["model"][10] == pytest.approx(0.1, rel=1e-3)
+    assert max(curves["CConv"]["truth"]) < 1e-6  # 0 up to float32 positions
     assert f"Not drawn: GNS ({baselines.MISSING_ROLLOUTS})." in lines
     assert any(line.endswith("CConv neither. Drawn: CConv.") for line in lines)
     # the baseline's rollout is still drawn against the ground truth: the failure the paper shows is CConv's
     assert (tmp_path / "boxbath_rigidity.png").is_file() and (tmp_path / "boxbath_strip.png").is_file()
     assert "![BOXBATH: every model's rollout](boxbath_strip.png)" in lines
     # a GNS that has not run at all is said to be so
-    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [])], tmp_path, previous=None)
+    lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [])], tmp_path, previous=None)
     assert drawn["boxbath"]["missing"] == {"GNS": "not run yet"}
 
 
@@ -190,14 +201,14 @@ def test_a_stress_sweeps_retraining_of_the_same_model_stands_in_for_gone_gns_rol
     rollouts = {"cconv run": [_swelling_cube(20)], "again": [_swelling_cube(20)], "shake": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", row), []))
-    lines, drawn = baselines.failure_section([(cconv, ["cconv run"], [gns])], tmp_path, previous=None,
+    lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [gns])], tmp_path, previous=None,
                                              stand_ins={"boxbath": [longer, stand_in]})
     assert drawn["boxbath"]["rigidity"] == ["GNS", "CConv"] and "missing" not in drawn["boxbath"]
     assert "stress-boxbath/seed0 (`again`)" in drawn["boxbath"]["gns_from"]
     assert "rollout MSE 0.03 against the domain run's 0.0217" in drawn["boxbath"]["gns_from"]
     assert f"The GNS in these pictures: {drawn['boxbath']['gns_from']}." in lines
     # only a run of the same model stands in: the longer-trained one alone does not
-    _, drawn = baselines.failure_section([(cconv, ["cconv run"], [gns])], tmp_path, previous=None,
+    _, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [gns])], tmp_path, previous=None,
                                          stand_ins={"boxbath": [longer]})
     assert drawn["boxbath"]["missing"] == {"GNS": baselines.MISSING_ROLLOUTS}
 
@@ -206,3 +217,25 @@ def test_every_model_has_its_own_colour_in_the_comparison_figures() -> None:
     # the rigidity figure once drew the GNS and DPI-Net in one pink (their keys hash to one palette slot)
     colours = [baselines.MODEL_COLOURS[name] for name in ("GNS", "CConv", "DPI-Net")]
     assert len(set(colours)) == 3
+
+
+def test_a_drift_curve_kept_in_the_summary_is_redrawn_when_its_rollouts_are_gone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # CConv's BOXBATH rollouts went with a lost MLflow store once, and its rigidity curve with them
+    cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
+    rollouts = {"gns run": [_swelling_cube(20)], "cconv run": [_swelling_cube(30)]}
+    monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row.run_id, []))
+    _, first = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path, previous=None)
+    assert first["boxbath"]["rigidity"] == ["GNS", "CConv"]
+    del rollouts["cconv run"]
+    lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path,
+                                             previous=first)
+    assert drawn["boxbath"]["rigidity"] == ["GNS", "CConv"] and drawn["boxbath"]["rigidity_kept"] == ["CConv"]
+    assert drawn["boxbath"]["rigidity_curves"]["CConv"] == first["boxbath"]["rigidity_curves"]["CConv"]
+    assert drawn["boxbath"]["missing"] == {"CConv": baselines.MISSING_ROLLOUTS}  # the strip still lacks it
+    assert any("The curve of CConv is the one the last report drew from the same run" in line for line in lines)
+    # another run is CConv's best now: the kept curve is not its own, so CConv is not drawn
+    _, drawn = baselines.failure_section([(cconv, [_Row("cconv rerun")], [_Row("gns run")])], tmp_path,
+                                         previous=first)
+    assert drawn["boxbath"]["rigidity"] == ["GNS"] and "rigidity_kept" not in drawn["boxbath"]
