@@ -380,6 +380,7 @@ def rigidity_means(rollouts: list[RolloutResult]) -> dict[str, list[float]] | No
     if not curves:
         return None
     length = min(len(c[0]) for c in curves)
+
     def compact(values: np.ndarray) -> list[float]:  # 4 significant digits: the figure's resolution, a small file
         return [float(f"{v:.4g}") for v in values]
 

@@ -166,7 +166,7 @@ def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path
     cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
     rollouts = {"cconv run": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
-    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", row), []))
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", None), []))
     lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path, previous=None)
     curves = drawn["boxbath"].pop("rigidity_curves")
     assert drawn == {"boxbath": {"missing": {"GNS": baselines.MISSING_ROLLOUTS}, "rigidity": ["CConv"],
@@ -200,7 +200,7 @@ def test_a_stress_sweeps_retraining_of_the_same_model_stands_in_for_gone_gns_rol
     gns, stand_in, longer = row(domain_run, "gnsgone", 0.0217), row(same, "again", 0.03), row(other, "shake", 0.01)
     rollouts = {"cconv run": [_swelling_cube(20)], "again": [_swelling_cube(20)], "shake": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
-    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", row), []))
+    monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row.run_id, []))
     lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [gns])], tmp_path, previous=None,
                                              stand_ins={"boxbath": [longer, stand_in]})
     assert drawn["boxbath"]["rigidity"] == ["GNS", "CConv"] and "missing" not in drawn["boxbath"]
