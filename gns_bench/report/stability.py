@@ -80,17 +80,20 @@ def _evaluation_horizon(row: RunRow, saved_lengths: list[int] | None = None) -> 
     count, ran, full = lengths
     rollouts = f"the {count} test rollout{'s' if count != 1 else ''}"
     stopped = ran < full
+    fraction = row.metric("rollout_stopped")  # the mean over the rollouts of 1 (stopped) or 0
+    what = (f"a monitor stopped {round(fraction * count)} of {count}" if math.isfinite(fraction) and fraction > 0
+            else "a monitor stopped at least one")
     flagged = row.metric("rollout_flagged") > 0
     quiet = (f"no monitor stopped one, but one flagged one (`{row.split}/rollouts_flagged`)" if flagged
              else "no monitor tripped")
     if row.param("eval.rollout_steps", "None") not in ("", "None"):  # cut short: no multiple of the length
-        what = "a monitor stopped one" if stopped else quiet
-        return f"{ran} of {full} steps of {rollouts} (evaluation cut at {full} steps), {what}", stopped or flagged
+        return (f"{ran} of {full} steps of {rollouts} (evaluation cut at {full} steps), {what if stopped else quiet}",
+                stopped or flagged)
     if not stopped:
         if flagged:
             return f"< 1x ({full} steps of {rollouts}, {quiet}; no longer scene run)", True
         return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)", False
-    return f"{ran / full:.2g}x ({ran} of {full} steps of {rollouts}, a monitor stopped one; no longer scene run)", True
+    return f"{ran / full:.2g}x (the shortest ran {ran} of {full} steps of {rollouts}, {what}; no longer scene run)", True
 
 
 @functools.lru_cache(maxsize=256)
@@ -210,6 +213,8 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         prefix = f"generalisation/{variant}/"
         before = saved.get(variant, {})
         values = {k[len(prefix):]: v for k, v in row.record.metrics.items() if k.startswith(prefix)}
+        for key in ("rollout_stopped", "rollout_flagged"):  # logged as the fraction of rollouts: shown as a count
+            values[key] = values.get(key, math.nan) * values.get("num_trajectories", math.nan)
         lines += [f"{level}# generalisation: {variant}", "",
                   "| rollout MSE | constant velocity, same steps | one-step MSE | OT | MMD | rollouts stopped "
                   "| rollouts flagged "

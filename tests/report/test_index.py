@@ -88,3 +88,33 @@ def test_a_baseline_row_leads_with_the_like_for_like_comparison(tmp_path: Path) 
     assert steps.startswith("rollout steps before a stop: GNS ") and ", CConv " in steps
     assert raw.startswith("raw rollout MSE, each over its own steps: CConv / GNS = ")
     assert "no result yet" in [line for line in claims if "SAND: GNS against CConv" in line][0]
+
+
+def test_a_generalisation_row_leads_with_the_unseen_scenes_against_constant_velocity(tmp_path: Path) -> None:
+    """MULTIMATERIAL's claim is about unseen shapes: its row shows the unseen-shape rollouts beside constant
+    velocity on the same steps, and the verdict follows the two numbers (the committed cpu summary, then the
+    same one edited so that the GNS does worse than the baseline)."""
+    from gns_bench.report.cells import fmt
+    from gns_bench.report.index import generalisation_claims
+
+    (tmp_path / "stress-multimaterial" / "cpu").mkdir(parents=True)
+    path = tmp_path / "stress-multimaterial" / "cpu" / "runs.json"
+    shutil.copy(REPORTS / "stress-multimaterial" / "cpu" / "runs.json", path)
+    summary = json.loads(path.read_text())
+    metrics = summary["runs"][0]["metrics"]
+    mse = metrics["generalisation/multimaterial-blob/rollout_mse"]
+    cv = metrics["generalisation/multimaterial-blob/baseline_cv_same_steps_mse"]
+
+    def row() -> str:
+        (line,) = [x for x in generalisation_claims(tmp_path) if x.startswith("| MULTIMATERIAL")]
+        return line
+
+    ours, verdict = row().split(" | ")[2:5:2]
+    assert ours.startswith(f"multimaterial-blob: rollout MSE {fmt(mse)} ({fmt(mse / cv)}x constant velocity, "
+                           "same steps; a monitor stopped ")
+    assert "; test rollout MSE " in ours
+    assert verdict == ("multimaterial-blob: GNS beats constant velocity" if mse < cv
+                       else "multimaterial-blob: GNS does not beat constant velocity")
+    metrics["generalisation/multimaterial-blob/rollout_mse"] = 2 * cv
+    path.write_text(json.dumps(summary))
+    assert row().split(" | ")[4] == "multimaterial-blob: GNS does not beat constant velocity"

@@ -163,3 +163,20 @@ def test_a_flagged_evaluation_rollout_is_not_a_stable_horizon(monkeypatch: pytes
     assert horizon.startswith(">= 1x") and not unstable
     horizon, unstable = stability._evaluation_horizon(Row(rollout_flagged=1.0))
     assert horizon.startswith("< 1x") and "flagged" in horizon and unstable
+
+
+def test_a_stopped_evaluation_horizon_counts_the_rollouts_a_monitor_stopped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The horizon is the shortest rollout's, and the cell says how many of the rollouts a monitor stopped
+    (logged as the fraction of them), not "one" whatever the count."""
+    from gns_bench.report import stability
+
+    class Row(_Row):
+        artifact_run_id, split = "r", "test"
+
+        def param(self, name: str, default: str = "") -> str:
+            return "None"
+
+    monkeypatch.setattr(stability, "_rollout_lengths", lambda run_id, split: (5, 60, 995))
+    horizon, unstable = stability._evaluation_horizon(Row(rollout_stopped=0.6))
+    assert horizon.startswith("0.06x (the shortest ran 60 of 995 steps of the 5 test rollouts, "
+                              "a monitor stopped 3 of 5;") and unstable
