@@ -30,9 +30,11 @@ from gns_bench.report.cells import (
 )
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
+from gns_bench.report.stability import held_out_interval
 from gns_bench.report.verdict import ERROR, ONE_STEP, judge_axis
 from gns_bench.sweep.campaigns import CAMPAIGNS_DIR, load_campaign
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
+from gns_bench.sweep.summaries import read_summary_extras, summary_path
 
 RESULT_TIERS = [t for t in reversed(TIERS) if t != "smoke"]  # most thorough first: what a claim is shown at
 MAJOR_AXES = ("message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
@@ -132,16 +134,48 @@ def generalisation_claims(reports_root: Path) -> list[str]:
         row = done[0]
         scale = row.metric("stress/scale/largest_stable_factor")
         against = relative_to_cv(row)
-        ours = "; ".join([*_unseen_scenes(row),
+        interpolation, interpolates = _interpolation(sweep, tier, row, reports_root)
+        ours = "; ".join([*interpolation, *_unseen_scenes(row),
                           f"test rollout MSE {fmt(row.metric('rollout_mse'))} ({times(against)} constant velocity)",
                           *_long_rollout(row),
                           *([f"stable at up to {fmt(scale)}x the training scenes' particles"]
                             if math.isfinite(scale) and scale > 0 else [])])
-        verdict = "<br>".join(filter(None, [_unseen_verdict(row), _horizon_verdict(row, stable)]))
+        verdict = "<br>".join(filter(None, [interpolates, _unseen_verdict(row), _horizon_verdict(row, stable)]))
         paper = "qualitative (videos)" if stable else "the box loses its shape towards the end (videos)"
         lines.append(f"| {claim} | {tier} | {ours} | {paper} | {verdict or 'see the report'} | "
                      f"{_link('stability', tier)} |")
     return lines
+
+
+def _interpolation(sweep: SweepSpec, tier: str, row: RunRow, reports_root: Path) -> tuple[list[str], str]:
+    """App. C.5's claim, from the per-trajectory rollouts on a grid of contexts (friction angles) that the report
+    keeps in its run summary: each rollout's MSE over constant velocity's on the same steps, split into the
+    angles held out of training and those trained on. The model interpolates when no held-out angle does worse
+    than the worst trained one; ([], "") where the domain holds nothing out or no grid was rolled out."""
+    interval = held_out_interval(sweep.domain)
+    if interval is None:
+        return [], ""
+    saved = read_summary_extras(summary_path(reports_root, sweep.name, tier)).get("stress", {}).get(row.run_id, {})
+    held, trained = [], []
+    for variant in saved.get("generalisation", {}).values():
+        for r in variant.get("per_trajectory", []):
+            mse, cv = r.get("rollout_mse", math.nan), r.get("baseline_cv_same_steps_mse", math.nan)
+            if "context" in r and math.isfinite(mse) and cv > 0:
+                (held if interval[0] <= r["context"] <= interval[1] else trained).append(mse / cv)
+    if not held or not trained:
+        return [], ""
+
+    def spread(values: list[float]) -> str:
+        median = times(float(np.median(values)))
+        return f"median {median}, {fmt(min(values))}-{fmt(max(values))}x ({len(values)} angles)"
+
+    lo, hi = (f"{v:g}" for v in interval)
+    ours = [f"rollout MSE over constant velocity's, same steps: held-out angles {lo}-{hi} deg {spread(held)}; "
+            f"trained angles {spread(trained)}"]
+    if max(held) <= max(trained):
+        return ours, "interpolates: no held-out angle does worse than the worst trained one"
+    worse = sum(v > max(trained) for v in held)
+    return ours, f"does not interpolate: {worse} of {len(held)} held-out angles do worse than the worst trained one"
 
 
 def _long_rollout(row: RunRow) -> list[str]:

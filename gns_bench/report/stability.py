@@ -93,7 +93,8 @@ def _evaluation_horizon(row: RunRow, saved_lengths: list[int] | None = None) -> 
         if flagged:
             return f"< 1x ({full} steps of {rollouts}, {quiet}; no longer scene run)", True
         return f">= 1x ({full} steps of {rollouts}, no monitor tripped; no longer scene run)", False
-    return f"{ran / full:.2g}x (the shortest ran {ran} of {full} steps of {rollouts}, {what}; no longer scene run)", True
+    return (f"{ran / full:.2g}x (the shortest ran {ran} of {full} steps of {rollouts}, {what}; "
+            "no longer scene run)", True)
 
 
 @functools.lru_cache(maxsize=256)
@@ -147,7 +148,8 @@ def context_figure(rows: list[dict[str, float]], path: Path, held_out: tuple[flo
     return path
 
 
-def _held_out(domain: str) -> tuple[float, float] | None:
+def held_out_interval(domain: str) -> tuple[float, float] | None:
+    """The context interval (e.g. friction angles, App. C.5) the domain's training data leaves out, if any."""
     try:
         from gns_bench.physics.spec import load_domain_spec
 
@@ -226,7 +228,7 @@ def generalisation_lines(sweep: SweepSpec, row: RunRow, out_dir: Path, workdir: 
         per_trajectory = _per_trajectory(row, variant, workdir) or before.get("per_trajectory", [])
         if per_trajectory and all("context" in r for r in per_trajectory):
             figure = context_figure(per_trajectory, out_dir / f"{sweep.name}_{variant}_context.png",
-                                    _held_out(sweep.domain))
+                                    held_out_interval(sweep.domain))
             lines += [f"![error against the context]({figure.name})", ""]
         npz = f"generalisation/{variant}/{variant}_rollouts.npz"
         loaded = load_rollouts(row.stress_run_id, npz, workdir)

@@ -156,3 +156,39 @@ def test_a_long_rollout_verdict_follows_the_horizon_test_and_the_papers_finding(
     assert got["BOXBATH"][4] == f"long rollout: stable over the whole {whole} steps, as the paper's"
     assert "then a monitor stopped it" not in got["BOXBATH"][2]
     assert got["FLUIDSHAKE-BOX"][4].endswith("no failure within the horizon, unlike the paper's")
+
+
+def test_continuous_interpolates_when_no_held_out_angle_does_worse_than_the_worst_trained_one(
+        tmp_path: Path) -> None:
+    """App. C.5: the CONTINUOUS row splits the per-angle rollouts the report keeps into the angles its training
+    data left out (datasets/continuous.toml) and the trained ones, each as GNS over constant velocity on the
+    same steps. A summary (the committed smoke one, as if at the cpu tier) with a grid of angles whose
+    held-out errors sit inside the trained ones' range interpolates; one held-out angle above it does not."""
+    from gns_bench.report.index import generalisation_claims
+    from gns_bench.report.stability import held_out_interval
+
+    lo, hi = held_out_interval("continuous")
+    (tmp_path / "stress-continuous" / "cpu").mkdir(parents=True)
+    path = tmp_path / "stress-continuous" / "cpu" / "runs.json"
+    summary = json.loads((REPORTS / "stress-continuous" / "smoke" / "runs.json").read_text())
+    (run_id,) = summary["extras"]["stress"]
+    angles = range(0, 85, 5)
+
+    def row(ratio) -> list[str]:
+        grid = [{"context": float(a), "rollout_mse": ratio(a) * 1e-3, "baseline_cv_same_steps_mse": 1e-3}
+                for a in angles]
+        summary["extras"]["stress"][run_id]["generalisation"]["continuous-heldout"]["per_trajectory"] = grid
+        path.write_text(json.dumps(summary))
+        (line,) = [x for x in generalisation_claims(tmp_path) if x.startswith("| CONTINUOUS")]
+        return line.split(" | ")
+
+    held = [a for a in angles if lo <= a <= hi]
+    cells = row(lambda a: 0.5 if lo <= a <= hi else (0.9 if a == 0 else 0.2))
+    assert cells[1] == "cpu"
+    assert cells[2].startswith(f"rollout MSE over constant velocity's, same steps: held-out angles {lo:g}-{hi:g} deg "
+                               f"median 0.5x, 0.5-0.5x ({len(held)} angles); trained angles median 0.2x, 0.2-0.9x "
+                               f"({len(angles) - len(held)} angles)")
+    assert cells[4].startswith("interpolates: no held-out angle does worse than the worst trained one")
+    cells = row(lambda a: 1.5 if a == held[0] else 0.5)
+    assert cells[4].startswith(f"does not interpolate: 1 of {len(held)} held-out angles do worse than the worst "
+                               "trained one")
