@@ -140,7 +140,8 @@ def generalisation_claims(reports_root: Path) -> list[str]:
                           *_long_rollout(row),
                           *([f"stable at up to {fmt(scale)}x the training scenes' particles"]
                             if math.isfinite(scale) and scale > 0 else [])])
-        verdict = "<br>".join(filter(None, [interpolates, _unseen_verdict(row), _horizon_verdict(row, stable)]))
+        verdict = "<br>".join(filter(None, [interpolates, _unseen_verdict(row), _horizon_verdict(row, stable),
+                                            _scale_verdict(row)]))
         paper = "qualitative (videos)" if stable else "the box loses its shape towards the end (videos)"
         lines.append(f"| {claim} | {tier} | {ours} | {paper} | {verdict or 'see the report'} | "
                      f"{_link('stability', tier)} |")
@@ -192,6 +193,23 @@ def _long_rollout(row: RunRow) -> list[str]:
     if math.isfinite(drift):
         parts.append(f"rigid-body drift {fmt(drift)} at its end (0: rigid; 1: pair distances off by their size)")
     return parts
+
+
+def _scale_verdict(row: RunRow) -> str:
+    """The scale test (Sec. 5.3: stable with up to 34x the training particles): which larger scenes ran their
+    whole rollout, and whether the GNS beat constant velocity on the same steps there."""
+    factors = sorted(float(k.split("/")[2][1:]) for k in (row.record.metrics if row.record else {})
+                     if k.startswith("stress/scale/x") and k.endswith("/steps"))
+    parts = []
+    for f in factors:
+        key = f"stress/scale/x{f:g}/"
+        ran, steps = row.metric(key + "stable_steps"), row.metric(key + "steps")
+        mse, cv = row.metric(key + "rollout_mse"), row.metric(key + "baseline_cv_same_steps_mse")
+        against = f", {times(mse / cv)} constant velocity" if cv > 0 and math.isfinite(mse) else ""
+        scene = f"{f:g}x scene ({fmt(row.metric(key + 'particle_ratio'))}x the particles)"
+        parts.append(f"{scene} stable{against}" if ran >= steps else
+                     f"{scene} stopped at step {ran:,.0f} of {steps:,.0f}{against}")
+    return f"larger scenes: {'; '.join(parts)}" if parts else ""
 
 
 def _horizon_verdict(row: RunRow, stable: bool) -> str:

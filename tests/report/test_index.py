@@ -192,3 +192,29 @@ def test_continuous_interpolates_when_no_held_out_angle_does_worse_than_the_wors
     cells = row(lambda a: 1.5 if a == held[0] else 0.5)
     assert cells[4].startswith(f"does not interpolate: 1 of {len(held)} held-out angles do worse than the worst "
                                "trained one")
+
+
+def test_the_scale_verdict_says_which_larger_scenes_ran_their_whole_rollout(tmp_path: Path) -> None:
+    """Sec. 5.3's scale claim, per larger scene the stress sweep ran: stable (every step) or where a monitor
+    stopped it, beside constant velocity on the same steps (the committed smoke summary, as if at cpu)."""
+    from gns_bench.report.cells import fmt
+    from gns_bench.report.index import generalisation_claims
+
+    (tmp_path / "stress-waterramps" / "cpu").mkdir(parents=True)
+    path = tmp_path / "stress-waterramps" / "cpu" / "runs.json"
+    summary = json.loads((REPORTS / "stress-waterramps" / "smoke" / "runs.json").read_text())
+    metrics = summary["runs"][0]["metrics"]
+    key = "stress/scale/x2/"
+    assert metrics[key + "stable_steps"] >= metrics[key + "steps"]  # as committed: it ran every step
+    against = fmt(metrics[key + "rollout_mse"] / metrics[key + "baseline_cv_same_steps_mse"])
+    scene = f"2x scene ({fmt(metrics[key + 'particle_ratio'])}x the particles)"
+
+    def verdict() -> str:
+        path.write_text(json.dumps(summary))
+        (line,) = [x for x in generalisation_claims(tmp_path) if x.startswith("| WATERRAMPS")]
+        return line.split(" | ")[4]
+
+    assert f"larger scenes: {scene} stable, {against}x constant velocity" in verdict()
+    metrics[key + "stable_steps"] = 5.0
+    assert (f"larger scenes: {scene} stopped at step 5 of {metrics[key + 'steps']:,.0f}, {against}x constant "
+            "velocity") in verdict()
