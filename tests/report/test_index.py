@@ -21,7 +21,8 @@ def test_the_committed_front_page_is_what_the_committed_summaries_give(tmp_path:
 def test_the_front_page_has_a_row_per_claim(tmp_path: Path) -> None:
     text = write_index(REPORTS, out=tmp_path / "README.md").read_text()
     for claim in ("Table 1", "model.message_passing_steps (Fig. 4, Sec. 5.4)", "model.latent_size (App. C.1)",
-                  "CONTINUOUS: interpolates friction angles", "CConv", "App. C.6"):
+                  "CONTINUOUS: interpolates friction angles", "FLUIDSHAKE-BOX: the floating box", "CConv",
+                  "App. C.6"):
         assert claim in text, claim
     axes = [line for line in text.splitlines() if line.startswith(("| model.", "| train."))
             and "(gns-bench's own target)" not in line]  # not the bench's `train.precision/compile = auto` row
