@@ -219,3 +219,15 @@ def test_the_scale_verdict_says_which_larger_scenes_ran_their_whole_rollout(tmp_
     metrics[key + "stable_steps"] = 5.0
     assert (f"larger scenes: {scene} stopped at step 5 of {metrics[key + 'steps']:,.0f}, {against}x constant "
             "velocity") in verdict()
+
+
+def test_the_radius_ablations_default_point_counts_as_the_goop_model_it_shares() -> None:
+    """The runner shares GOOP's run with the radius ablation's R = 0.015 point (the domain's default radius,
+    resolved), so the campaign's count of models must see one model there, not two; R = 0.01 stays another."""
+    from gns_bench.report.index import _training_key
+    from gns_bench.sweep.spec import load_sweep
+
+    radius = {r.name: r for r in load_sweep(SWEEPS_DIR / "ablations" / "connectivity_radius.toml").plan("cpu")}
+    (goop,) = load_sweep(SWEEPS_DIR / "domains" / "goop.toml").plan("cpu")
+    assert _training_key(radius["connectivity_radius=0.015-seed0"]) == _training_key(goop)
+    assert _training_key(radius["connectivity_radius=0.01-seed0"]) != _training_key(goop)
