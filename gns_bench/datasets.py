@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from gns_bench.config import Config, resolve_for_dataset
 from gns_bench.data.tiny import RADIUS as TINY_RADIUS
 from gns_bench.data.tiny import TINY, generate_tiny
 from gns_bench.physics import spec
@@ -37,6 +38,12 @@ def default_connectivity_radius(domain: str) -> float:
     spec without a dataset at hand."""
     check_domain(domain)
     return TINY_RADIUS if domain == TINY else spec.load_domain_spec(domain).connectivity_radius
+
+
+def resolve_for_domain(config: Config, domain: str) -> Config:
+    """`config` resolved against `domain`'s default radius as its datasets will carry it (`resolve_for_dataset`),
+    without a dataset at hand: what the runner keys a run summary by, and so what counts as one model."""
+    return resolve_for_dataset(config, default_connectivity_radius(domain))
 
 
 def dataset_path(domain: str, tier: str, seed: int = 0, data_root: str | Path = "data") -> Path:

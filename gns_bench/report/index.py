@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gns_bench.config import ARCHITECTURE_NAMES, TIERS, resolve_for_dataset
-from gns_bench.datasets import default_connectivity_radius
+from gns_bench.config import ARCHITECTURE_NAMES, TIERS
+from gns_bench.datasets import resolve_for_domain
 from gns_bench.durations import format_duration
 from gns_bench.report import baselines
 from gns_bench.report.cells import (
@@ -339,9 +339,9 @@ def bench_claims(reports_root: Path) -> list[str]:
 def _training_key(run) -> str:
     """Planned runs with equal keys train one model (an ablation's default point is its domain's run, a stress
     sweep tests its domain sweep's model): what they train on and with, evaluation and stress settings aside,
-    the radius resolved against the domain's default as the runner's keys have it (`sweep.runner.summary_key`:
-    the radius ablation's R = 0.015 point is the GOOP run)."""
-    config = resolve_for_dataset(run.config, default_connectivity_radius(run.training_domain)).to_dict()
+    the radius resolved against the domain's default as the runner's keys have it (`resolve_for_domain`: the
+    radius ablation's R = 0.015 point is the GOOP run)."""
+    config = resolve_for_domain(run.config, run.training_domain).to_dict()
     config.pop("eval", None)
     config.pop("stress", None)
     return json.dumps([run.training_domain, run.dataset_tier, run.dataset_seed, config], sort_keys=True, default=str)

@@ -33,7 +33,7 @@ from pathlib import Path
 from gns_bench import tracking
 from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
-from gns_bench.datasets import dataset_complete, dataset_path, default_connectivity_radius, ensure_dataset
+from gns_bench.datasets import dataset_complete, dataset_path, ensure_dataset, resolve_for_domain
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 from gns_bench.sweep.summaries import RESTORED_FROM, summarised_runs
@@ -89,7 +89,7 @@ def summary_key(run: PlannedRun, record: tracking.RunRecord) -> str | None:
     evaluated = record.tags.get("eval_dataset_hash") if run.evaluated_elsewhere else None
     if not dataset_hash or (run.evaluated_elsewhere and not evaluated):
         return None
-    config = resolve_for_dataset(run.config, default_connectivity_radius(run.training_domain))
+    config = resolve_for_domain(run.config, run.training_domain)
     return run_key(config, run.domain, dataset_hash, evaluated)
 
 
