@@ -96,6 +96,21 @@ def test_density_monitor(grid: np.ndarray) -> None:
     DensityMonitor(moving, R, every=10)(state(collapsed, step=5))  # not a checking step
 
 
+def test_density_monitor_needs_enough_close_particles(grid: np.ndarray) -> None:
+    # 7 moving particles, 2 of them closer than 0.05 R (28.6%, as the inflow arena's first frames): noise
+    few = grid[:7].copy()
+    few[1] = few[0] + 1e-4
+    DensityMonitor(torch.ones(7, dtype=torch.bool), R, every=1)(state(few))
+    with pytest.raises(MonitorTripped, match="density_collapse"):  # it is the floor that holds it back
+        DensityMonitor(torch.ones(7, dtype=torch.bool), R, every=1, min_close=2)(state(few))
+    # the same share of 10 particles and more is a collapse
+    many = grid[:35].copy()
+    many[1:10:2] = many[0:9:2] + 1e-4
+    assert round(close_share(many, np.ones(35, dtype=bool), 0.05 * R) * 35) == 10
+    with pytest.raises(MonitorTripped, match="density_collapse"):
+        DensityMonitor(torch.ones(35, dtype=torch.bool), R, every=1)(state(many))
+
+
 def test_close_share_against_brute_force() -> None:
     rng = np.random.default_rng(0)
     cloud = rng.uniform(0, 0.05, size=(200, 2))
