@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -190,10 +191,18 @@ def _long_rollout(row: RunRow) -> list[str]:
     drift = row.metric("stress/horizon/rigidity_drift_final")
     stopped = row.metric("stress/horizon/stopped") > 0
     parts = [f"long rollout: {ran:,.0f} of {steps:,.0f} steps ({fmt(ran / length)}x the training length of "
-             f"{length:,.0f}){', then a monitor stopped it' if stopped else ''}"]
+             f"{length:,.0f}){f', then {_horizon_stopper(row)} stopped it' if stopped else ''}"]
     if math.isfinite(drift):
         parts.append(f"rigid-body drift {fmt(drift)} at its end (0: rigid; 1: pair distances off by their size)")
     return parts
+
+
+def _horizon_stopper(row: RunRow) -> str:
+    """Which monitor stopped the long rollout first ("a monitor" where its trips tag is gone). The horizon test
+    stops on every monitor, out_of_bounds included (a particle through a wall is no stable rollout), where an
+    evaluation only flags it and scores on (`eval.stop_on`, reports/NOTES.md)."""
+    names = re.findall(r": (\w+) at step (\d+)", row.tag("stress/horizon/trips"))
+    return f"the {min(names, key=lambda n: int(n[1]))[0]} monitor" if names else "a monitor"
 
 
 def _scale_verdict(row: RunRow) -> str:
@@ -225,8 +234,10 @@ def _horizon_verdict(row: RunRow, stable: bool) -> str:
         return (f"long rollout: stable over the whole {steps:,.0f} steps" +
                 (", as the paper's" if stable else ": no failure within the horizon, unlike the paper's"))
     if stable:
-        return f"long rollout: not reproduced (a monitor stopped it at {fmt(factor)}x the training length)"
-    return f"long rollout: fails sooner than the paper's (a monitor stopped it at step {ran:,.0f} of {steps:,.0f})"
+        return (f"long rollout: not reproduced ({_horizon_stopper(row)} stopped it at {fmt(factor)}x the training "
+                "length)")
+    return (f"long rollout: fails sooner than the paper's ({_horizon_stopper(row)} stopped it at step {ran:,.0f} of "
+            f"{steps:,.0f})")
 
 
 def _unseen_scenes(row: RunRow) -> list[str]:

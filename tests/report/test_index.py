@@ -142,11 +142,22 @@ def test_a_long_rollout_verdict_follows_the_horizon_test_and_the_papers_finding(
     assert box["stress/horizon/stopped"] > 0 and shake["stress/horizon/stopped"] > 0  # as committed
     ran = f"{box['stress/horizon/stable_steps']:,.0f} of {box['stress/horizon/steps']:,.0f} steps"
     got = rows()
-    assert f"long rollout: {ran} (" in got["BOXBATH"][2] and "then a monitor stopped it" in got["BOXBATH"][2]
-    assert got["BOXBATH"][4].startswith("long rollout: not reproduced (a monitor stopped it at ")
+    tags = {s: json.loads(p.read_text())["runs"][0]["tags"] for s, p in paths.items()}
+    assert all("out_of_bounds at step" in t["stress/horizon/trips"] for t in tags.values())  # as committed
+    assert f"long rollout: {ran} (" in got["BOXBATH"][2]
+    assert "then the out_of_bounds monitor stopped it" in got["BOXBATH"][2]  # the trip names the monitor
+    assert got["BOXBATH"][4].startswith("long rollout: not reproduced (the out_of_bounds monitor stopped it at ")
     assert got["FLUIDSHAKE-BOX"][4] == (
-        f"long rollout: fails sooner than the paper's (a monitor stopped it at step "
+        f"long rollout: fails sooner than the paper's (the out_of_bounds monitor stopped it at step "
         f"{shake['stress/horizon/stable_steps']:,.0f} of {shake['stress/horizon/steps']:,.0f})")
+    summary = json.loads(paths["stress-boxbath"].read_text())  # the first trip of several names the monitor
+    summary["runs"][0]["tags"]["stress/horizon/trips"] = ("long trajectory 0: density_collapse at step 300: x; "
+                                                          "long trajectory 1: energy_blowup at step 120: y")
+    paths["stress-boxbath"].write_text(json.dumps(summary))
+    assert "(the energy_blowup monitor stopped it at " in rows()["BOXBATH"][4]
+    del summary["runs"][0]["tags"]["stress/horizon/trips"]  # a summary without the tag: no name to give
+    paths["stress-boxbath"].write_text(json.dumps(summary))
+    assert rows()["BOXBATH"][4].startswith("long rollout: not reproduced (a monitor stopped it at ")
     for path in paths.values():
         summary = json.loads(path.read_text())
         run = summary["runs"][0]["metrics"]
