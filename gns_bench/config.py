@@ -90,6 +90,11 @@ class TrainConfig:
     learning_rate_decay_steps: float = 5e6  # lr = (lr0 - lr_final) * 0.1^(step / decay) + lr_final
     noise_std: float = 3e-4  # sigma_v: the paper's GOOP optimum; the released code used 6.7e-4
     position_correction: float = 0.0  # 0 = correct velocity noise (paper default) .. 1 = position noise
+    # Training windows: uniform over every window of every trajectory (the release), or with this share of each
+    # batch drawn from the first `start_windows` windows of a trajectory, where rollouts start and blocks are
+    # in the air nearly at rest (data/windows.py `WindowSampler` says why that matters).
+    start_window_share: float = 0.0
+    start_windows: int = 50
     seed: int = 0
     checkpoint_every: int = 1000
     log_every: int = 100
@@ -121,6 +126,8 @@ class TrainConfig:
         _require(self.learning_rate_decay_steps > 0, "train.learning_rate_decay_steps", "must be > 0")
         _require(self.noise_std >= 0, "train.noise_std", "must be >= 0")
         _require(0.0 <= self.position_correction <= 1.0, "train.position_correction", "must be in [0, 1]")
+        _require(0.0 <= self.start_window_share <= 1.0, "train.start_window_share", "must be in [0, 1]")
+        _require(self.start_windows >= 1, "train.start_windows", "must be >= 1")
         _require(self.checkpoint_every >= 1, "train.checkpoint_every", "must be >= 1")
         _require(self.log_every >= 1, "train.log_every", "must be >= 1")
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")

@@ -167,7 +167,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
 # What the error-against-training-time curve logs (`curve/<name>` at the training step, beside
 # `curve/train_seconds`): the paper's MSEs, the like-for-like baseline, and rollouts a monitor stopped.
 CURVE_METRICS = ("rollout_mse", "rollout_mse_moving", "baseline_cv_same_steps_mse", "one_step_mse", "mse_h10",
-                 "mse_h100", "rollout_steps", "rollout_stopped")
+                 "mse_h100", "rollout_steps", "rollout_stopped", "gravity_ratio", "rollout_gravity_ratio",
+                 "wall_pass_fraction", "com_fall_ratio", "steps_before_trip")
 
 
 def _curve_logger(run: tracking.Run, config: Config, dataset_dir: str | Path, device: str
@@ -182,7 +183,8 @@ def _curve_logger(run: tracking.Run, config: Config, dataset_dir: str | Path, de
                           one_step_windows=min(config.eval.one_step_windows or 20, 20))
 
     def log_curve_point(simulator: LearnedSimulator, step: int, train_seconds: float) -> None:
-        evaluation = evaluate(simulator, valid, eval_config, device=device, progress=False)
+        evaluation = evaluate(simulator, valid, eval_config, device=device, progress=False, gravity=meta.gravity,
+                              walls=meta.walls)
         run.log_metrics({f"curve/{key}": evaluation.metrics[key] for key in CURVE_METRICS
                          if key in evaluation.metrics} | {"curve/train_seconds": train_seconds}, step=step)
 
@@ -201,7 +203,7 @@ def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: 
                               min_length=simulator.input_sequence_length + 1)
     started = time.perf_counter()
     evaluation = evaluate(simulator, trajectories, eval_config, device=device, progress=progress,
-                          bounds=meta.bounds if scene_bounds else None)
+                          bounds=meta.bounds if scene_bounds else None, gravity=meta.gravity, walls=meta.walls)
     # what the evaluation cost (the front page sums it over a campaign; `sweep/timing.py` estimates it before)
     evaluation.metrics["evaluation_seconds"] = time.perf_counter() - started
     _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split,

@@ -15,13 +15,17 @@ from tqdm import tqdm
 from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.data.windows import make_batch
-from gns_bench.evaluate import metrics
+from gns_bench.evaluate import diagnostics, metrics
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
 from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 ONE_STEP_BATCH = 16  # windows per forward pass when measuring one-step error
+GRAVITY_WINDOWS = 16  # true windows per trajectory on which `one_step_gravity_ratio` asks the model
+# Per-trajectory values that are NaN where they do not apply (no particle in free fall, no walls, the truth
+# barely falls): their summary is the mean over the trajectories where they do.
+NAN_WHERE_NOT_APPLICABLE = ("gravity_ratio", "rollout_gravity_ratio", "wall_pass_fraction", "com_fall_ratio")
 
 
 @dataclass
@@ -121,6 +125,49 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
     return total, count, moving_total, moving_count
 
 
+@torch.no_grad()
+def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, gravity: list[float],
+                           max_windows: int = GRAVITY_WINDOWS, device: torch.device | str = "cpu",
+                           precision: str = "fp32") -> float:
+    """`diagnostics.gravity_ratio` of the model's one-step predictions on true windows: over the moving
+    particles the ground truth has in free fall at a window's last frame, the predicted acceleration along g
+    over the true one (up to `max_windows` windows, evenly spread over the frames that have such particles)."""
+    w = simulator.input_sequence_length
+    moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
+    true_acc = diagnostics.accelerations(trajectory.position)  # index i: frame i + 1
+    falling = diagnostics.free_fall_mask(true_acc, gravity) & moving[None]
+    frames = [t for t in range(w - 1, trajectory.num_steps - 1) if falling[t - 1].any()]
+    if not frames or trajectory.has_inflow:
+        return float("nan")
+    if len(frames) > max_windows:
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
+    batch = make_batch([trajectory], [(0, t) for t in frames], w).to(device)
+    with network_dtype(simulator, dtype_of(precision)):
+        dtype = dtype_of(precision)
+        context = batch.context.to(dtype) if batch.context is not None else None
+        predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
+                                                    context, precision=precision)
+    window = batch.window.double()
+    ours = (predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy()
+    n, d = trajectory.num_particles, trajectory.position.shape[2]
+    index = np.array(frames) - 1
+    return diagnostics.gravity_ratio(ours.reshape(len(frames), n, d), true_acc[index], falling[index], gravity)
+
+
+def physical_diagnostics(result: RolloutResult, bounds: list[list[float]], walls: bool,
+                         gravity: list[float] | None, radius: float) -> dict[str, float]:
+    """The rollout's `diagnostics`: gravity ratio along the rollout, the share of particles through a wall (with
+    walls), the centre of mass against the truth's (its fall counted where the truth falls at least R)."""
+    moving, nan = result.moving_mask, float("nan")
+    k = min(result.predicted.shape[0], result.ground_truth.shape[0])
+    predicted, truth = result.predicted[:k], result.ground_truth
+    row = {"rollout_gravity_ratio": (diagnostics.rollout_gravity_ratio(result.initial_window, predicted, truth, moving,
+                                                                      gravity) if gravity is not None else nan),
+           "wall_pass_fraction": diagnostics.wall_pass_fraction(predicted, bounds, moving) if walls else nan}
+    row.update(diagnostics.centre_of_mass_errors(result.initial_window, predicted, truth, moving, gravity, radius))
+    return row
+
+
 def rollout_errors(result: RolloutResult, num_frames: int) -> dict[str, float]:
     """A rollout's position MSEs, of a trajectory of `num_frames` frames:
 
@@ -154,12 +201,15 @@ def _paper_view(rollout: np.ndarray, truth: np.ndarray, scored: np.ndarray) -> n
 
 def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig, *,
              device: torch.device | str = "cpu", hooks: tuple[Hook, ...] = (),
-             progress: bool = True, bounds: list[list[float]] | None = None) -> Evaluation:
+             progress: bool = True, bounds: list[list[float]] | None = None,
+             gravity: list[float] | None = None, walls: bool = True) -> Evaluation:
     """Roll out each trajectory and measure it; `metrics` holds the means over trajectories of every
     per-trajectory value (`ot_exact`: 1 since OT became exact EMD at every size; below 1 only in runs
     evaluated before, when large clouds got a Sinkhorn divergence).
 
-    bounds: the scene's walls when they are not the training data's (a larger arena)."""
+    bounds: the scene's walls when they are not the training data's (a larger arena). gravity (per stored
+    frame squared, the dataset's metadata) and walls (whether the bounds are walls) feed the physical
+    diagnostics (`physical_diagnostics`, `one_step_gravity_ratio`); without gravity its diagnostics are NaN."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
@@ -183,6 +233,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         if trips:
             flagged.append(f"trajectory {index}: " + ", ".join(trip.reason for trip in trips))
         k = result.predicted.shape[0]
+        trip_steps = [trip.step for trip in trips]
         row = {
             "trajectory": index,
             **one_step_mse(simulator, traj, config.one_step_windows, device)._asdict(),
@@ -191,6 +242,12 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),
             "rollout_flagged": float(bool(trips)),
+            "steps_before_trip": float(diagnostics.steps_before_trip(k, result.stopped_at, trip_steps)),
+            "gravity_ratio": (one_step_gravity_ratio(simulator, traj, gravity, device=device,
+                                                     precision=config.precision)
+                              if gravity is not None else float("nan")),
+            **physical_diagnostics(result, bounds if bounds is not None else simulator.bounds.tolist(), walls,
+                                   gravity, simulator.radius),
         }
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
             row["context"] = float(traj.step_context[0, 0])
@@ -206,7 +263,9 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     summary = {}
     for key in dict.fromkeys(key for row in per_traj for key in row):  # a key only some trajectories reach too
         if key not in ("trajectory", "context"):  # (`mse_h100` of the rollouts that got to step 100)
-            summary[key] = float(np.mean([row[key] for row in per_traj if key in row]))
+            values = [row[key] for row in per_traj if key in row]
+            applicable = [v for v in values if np.isfinite(v)] if key in NAN_WHERE_NOT_APPLICABLE else values
+            summary[key] = float(np.mean(applicable)) if applicable else float("nan")
     summary["num_trajectories"] = float(len(per_traj))
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
     if compile_choice:  # eval.compile = "auto": what the probe chose, and its timings

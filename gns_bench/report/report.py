@@ -63,6 +63,18 @@ from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_r
 ACCURACY_HEADER = ("| domain | simulator | max N | K | one-step MSE | paper | ratio | rollout MSE | paper | ratio "
                    "| GNS / constant velocity | seeds |")
 DISTRIBUTION_HEADER = "| domain | OT | MMD | KE error | rollout steps covered |"
+DIAGNOSTICS_HEADER = ("| domain | gravity ratio, one step | gravity ratio, rollout | centre-of-mass fall, ours / truth "
+                      "| particles through a wall | steps before a monitor's first trip |")
+DIAGNOSTICS_NOTE = (
+    "Gravity ratio: over the particles the ground truth has in free fall (true acceleration g within 10% on three "
+    "frames in a row: blocks before their first contact), the mean predicted acceleration along g over the "
+    "true one; 1 = gravity learned, 0 = a block that hovers. *One step*: the model on true windows; *rollout*: "
+    "along its own rollout. Centre-of-mass fall: how far the moving particles' centre moved along g by the "
+    "rollout's last step, over the truth's (where the truth's moved at least R). Particles through a wall: the "
+    "share of moving particles outside the bounds at some step. Steps before a trip: the first step a health "
+    "monitor stopped or flagged the rollout, or its length. Mean over test trajectories and seeds; '—': the run "
+    "was evaluated before these diagnostics existed, or none of its particles was in free fall "
+    "(`gns_bench/evaluate/diagnostics.py`).")
 BUDGET_HEADER = ("| domain | training steps | precision | training time (min) | hardware | data tier | status "
                  "| MLflow runs |")
 
@@ -94,6 +106,14 @@ def distribution_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
             steps_covered(rows)]
 
 
+def diagnostics_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
+    def mean(metric: str) -> str:
+        return fmt(mean_std([r.metric(metric) for r in rows if r.ok])[0])
+
+    return [display_name(sweep.domain), mean("gravity_ratio"), mean("rollout_gravity_ratio"), mean("com_fall_ratio"),
+            mean("wall_pass_fraction"), mean("steps_before_trip")]
+
+
 def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     done = [r for r in rows if r.ok]
     steps = sorted({int(r.metric("train/final_step")) for r in done if math.isfinite(r.metric("train/final_step"))})
@@ -112,6 +132,8 @@ def domain_tables(collected: list[tuple[SweepSpec, list[RunRow]]], compare: bool
             *_table(ACCURACY_HEADER, [accuracy_row(s, rows, compare) for s, rows in collected]), "",
             "## Distributional metrics (App. B.4)", "",
             *_table(DISTRIBUTION_HEADER, [distribution_row(s, rows) for s, rows in collected]), "",
+            "## Physical diagnostics", "",
+            *_table(DIAGNOSTICS_HEADER, [diagnostics_row(s, rows) for s, rows in collected]), "", DIAGNOSTICS_NOTE, "",
             "## Budget", "", *_table(BUDGET_HEADER, [budget_row(s, rows) for s, rows in collected]), ""]
 
 

@@ -107,7 +107,7 @@ def run_stress(simulator: LearnedSimulator, config: Config, dataset_dir: str | P
             eval_config = replace(config.eval, max_trajectories=stress.max_trajectories,
                                   rollout_steps=steps if steps is not None else None)
             evaluation = evaluate(simulator, found[0], eval_config, device=device, progress=progress,
-                                  bounds=found[1].bounds)
+                                  bounds=found[1].bounds, gravity=found[1].gravity, walls=found[1].walls)
             outcome.generalisation[variant] = (evaluation, found[1])
     for note in outcome.skipped:
         echo(f"  skipped {note}")

@@ -261,7 +261,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
     if trajectories is None:
         trajectories = load_training_split(config, dataset_dir, metadata)
-    sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed, unrolled_steps(config))
+    sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed, unrolled_steps(config),
+                            tc.start_window_share, tc.start_windows)
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)

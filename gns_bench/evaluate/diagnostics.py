@@ -1,0 +1,116 @@
+"""Physical diagnostics of a rollout: does the model let things fall, keep them inside the walls, and move the
+material's centre of mass as the truth does? Pure NumPy on the arrays evaluation already holds.
+
+The simplest thing every scene of the paper shares is gravity (Sec. 4.1: material falls, splashes, settles).
+A model that has not learned it makes blocks hover, and the position MSE says so only indirectly; these say it
+directly:
+
+- `gravity_ratio`: over the (particle, frame) pairs that are in free fall in the ground truth (their true
+  acceleration is g within `FREE_FALL_TOLERANCE` on three frames in a row: a block before its first contact),
+  the mean predicted acceleration along g over the true one. 1 is gravity learned, 0 a hovering block.
+- `wall_pass_fraction`: the share of moving particles that leave the bounds (pass a wall) at some step.
+- the centre of mass of the moving particles against the truth's: its mean distance from the truth's, and
+  `com_fall_ratio`, the predicted displacement of the centre of mass along g over the truth's over the rollout.
+
+Accelerations are second differences of positions per stored frame (dt = 1, as the metadata's statistics).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+FREE_FALL_TOLERANCE = 0.1  # |a - g| <= 0.1 |g|: MPM particles in a falling block jitter a little about g
+FREE_FALL_RUN = 3  # frames in a row: a particle passing through g for one frame of an impact is not falling
+
+
+def accelerations(frames: np.ndarray) -> np.ndarray:
+    """[T, N, D] positions -> [T - 2, N, D] accelerations a_t = p_{t+1} - 2 p_t + p_{t-1} (t = 1 .. T-2)."""
+    frames = np.asarray(frames, dtype=np.float64)
+    return frames[2:] - 2.0 * frames[1:-1] + frames[:-2]
+
+
+def free_fall_mask(acceleration: np.ndarray, gravity: Sequence[float],
+                   tolerance: float = FREE_FALL_TOLERANCE, run: int = FREE_FALL_RUN) -> np.ndarray:
+    """[T, N] True where a particle's acceleration [T, N, D] is g within `tolerance` |g| on `run` consecutive
+    frames centred on that one (frames too near either end to have their neighbours count as False)."""
+    g = np.asarray(gravity, dtype=np.float64)
+    close = np.linalg.norm(acceleration - g, axis=-1) <= tolerance * np.linalg.norm(g)
+    half = run // 2
+    mask = np.zeros_like(close)
+    if close.shape[0] < run:
+        return mask
+    inner = np.ones_like(close[: close.shape[0] - 2 * half])
+    for shift in range(run):
+        inner &= close[shift: shift + inner.shape[0]]
+    mask[half: half + inner.shape[0]] = inner
+    return mask
+
+
+def gravity_ratio(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray, gravity: Sequence[float]) -> float:
+    """Sum of predicted accelerations along g over the sum of true ones, over `mask` [T, N] of accelerations
+    [T, N, D]; NaN when the mask is empty or g is zero."""
+    g = np.asarray(gravity, dtype=np.float64)
+    norm = np.linalg.norm(g)
+    if norm == 0 or not mask.any():
+        return float("nan")
+    down = g / norm
+    return float((predicted[mask] @ down).sum() / (truth[mask] @ down).sum())
+
+
+def rollout_gravity_ratio(initial_window: np.ndarray, predicted: np.ndarray, truth: np.ndarray,
+                          moving: np.ndarray, gravity: Sequence[float]) -> float:
+    """`gravity_ratio` of a rollout: the accelerations that produced each predicted frame [K, N, D], against the
+    truth's at the same frames, over the moving particles [N] that the truth has in free fall there."""
+    k = min(predicted.shape[0], truth.shape[0])
+    if k == 0:
+        return float("nan")
+    window = initial_window[-2:]
+    ours = accelerations(np.concatenate([window, predicted[:k]]))  # [k, N, D]: the step into each predicted frame
+    seq = np.concatenate([window, truth[: k + 1]])
+    theirs = accelerations(seq)  # [k + 1 - ..., N, D]: the truth's, one frame further for the free-fall run
+    falling = free_fall_mask(theirs, gravity)[:k] & moving[None, :]
+    return gravity_ratio(ours, theirs[:k], falling, gravity)
+
+
+def wall_pass_fraction(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving: np.ndarray) -> float:
+    """The share of moving particles [N] outside `bounds` [D, 2] at any predicted step [K, N, D]."""
+    if predicted.shape[0] == 0 or not moving.any():
+        return float("nan")
+    b = np.asarray(bounds, dtype=np.float64)
+    outside = ((predicted < b[:, 0]) | (predicted > b[:, 1])).any(axis=-1).any(axis=0)  # [N]
+    return float(outside[moving].mean())
+
+
+def centre_of_mass(frames: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """[K, N, D] -> [K, D]: the mean position of the moving particles (all particles weigh the same)."""
+    return np.asarray(frames, dtype=np.float64)[:, moving].mean(axis=1)
+
+
+def centre_of_mass_errors(initial_window: np.ndarray, predicted: np.ndarray, truth: np.ndarray, moving: np.ndarray,
+                          gravity: Sequence[float] | None, min_fall: float) -> dict[str, float]:
+    """`com_error`: mean distance between the predicted and true centres of mass over the predicted steps;
+    `com_fall_ratio`: the predicted displacement along g from the last input frame to the last predicted step,
+    over the truth's at that step (NaN when the truth moves less than `min_fall` along g, or without g)."""
+    k = min(predicted.shape[0], truth.shape[0])
+    nan = float("nan")
+    if k == 0 or not moving.any():
+        return {"com_error": nan, "com_fall_ratio": nan}
+    ours, theirs = centre_of_mass(predicted[:k], moving), centre_of_mass(truth[:k], moving)
+    out = {"com_error": float(np.linalg.norm(ours - theirs, axis=1).mean()), "com_fall_ratio": nan}
+    g = np.asarray(gravity, dtype=np.float64) if gravity is not None else np.zeros(0)
+    if g.size and np.linalg.norm(g) > 0:
+        down = g / np.linalg.norm(g)
+        start = centre_of_mass(initial_window[-1:], moving)[0]
+        true_fall = float((theirs[-1] - start) @ down)
+        if abs(true_fall) >= min_fall:
+            out["com_fall_ratio"] = float((ours[-1] - start) @ down) / true_fall
+    return out
+
+
+def steps_before_trip(rollout_steps: int, stopped_at: int | None, flagged_steps: Sequence[int]) -> int:
+    """The rollout step at which a health monitor first tripped (stopped or only flagged the rollout), or the
+    rollout's length when none did."""
+    trips = list(flagged_steps) + ([stopped_at] if stopped_at is not None else [])
+    return int(min(trips)) if trips else int(rollout_steps)

@@ -1,0 +1,76 @@
+"""Physical diagnostics against closed forms: a parabola is free fall at g, a block that stops in the air is not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gns_bench.evaluate import diagnostics
+
+G = np.array([0.0, -6e-5])
+BOUNDS = [[0.1, 0.9], [0.1, 0.9]]
+
+
+def parabola(frames: int, particles: int = 5, scale: float = 1.0, start_y: float = 0.8) -> np.ndarray:
+    """[frames, N, 2] particles falling at `scale` g from rest: p_t = p_0 + t (t + 1) / 2 scale g."""
+    t = np.arange(frames, dtype=float)[:, None, None]
+    start = np.stack([np.linspace(0.3, 0.5, particles), np.full(particles, start_y)], axis=1)
+    return start[None] + 0.5 * t * (t + 1) * scale * G
+
+
+def test_free_fall_mask_needs_three_frames_at_g():
+    acc = np.repeat(G[None, None], 10, axis=0).copy()  # [10, 1, 2]
+    acc[5, 0] = [0.0, 0.0]  # one frame of contact
+    mask = diagnostics.free_fall_mask(acc, G)[:, 0]
+    assert not mask[0] and not mask[-1]  # no neighbour on one side
+    assert not mask[4] and not mask[5] and not mask[6]  # the contact frame and its neighbours
+    assert mask[1:4].all() and mask[7:9].all()
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5, 0.0])
+def test_rollout_gravity_ratio_is_the_predicted_share_of_g(scale):
+    truth = parabola(40)
+    predicted_all = parabola(40, scale=scale)
+    w = 6
+    # the model's rollout starts from the true window and falls at `scale` g from there
+    predicted = truth[w - 1] + (predicted_all[w:] - predicted_all[w - 1])
+    predicted += (truth[w - 1] - truth[w - 2]) * np.arange(1, 40 - w + 1)[:, None, None]  # keep the true velocity
+    moving = np.ones(truth.shape[1], bool)
+    ratio = diagnostics.rollout_gravity_ratio(truth[:w], predicted, truth[w:], moving, G)
+    assert ratio == pytest.approx(scale, abs=1e-6)
+
+
+def test_gravity_ratio_is_nan_without_free_fall():
+    rest = np.full((20, 3, 2), 0.5)
+    assert np.isnan(diagnostics.rollout_gravity_ratio(rest[:6], rest[6:], rest[6:], np.ones(3, bool), G))
+
+
+def test_wall_pass_fraction_counts_particles_that_leave_once():
+    frames = np.full((4, 4, 2), 0.5)
+    frames[2, 1] = [0.5, 0.05]  # through the floor at one step
+    frames[3, 2] = [0.95, 0.5]  # through the right wall
+    moving = np.array([True, True, True, False])
+    assert diagnostics.wall_pass_fraction(frames, BOUNDS, moving) == pytest.approx(2 / 3)
+    assert diagnostics.wall_pass_fraction(np.full((4, 4, 2), 0.5), BOUNDS, moving) == 0.0
+
+
+def test_centre_of_mass_fall_ratio_of_a_hovering_block_is_zero():
+    truth = parabola(60)
+    w = 6
+    hover = np.repeat(truth[w - 1][None], 60 - w, axis=0)
+    moving = np.ones(truth.shape[1], bool)
+    hovering = diagnostics.centre_of_mass_errors(truth[:w], hover, truth[w:], moving, G, min_fall=0.015)
+    assert hovering["com_fall_ratio"] == pytest.approx(0.0, abs=1e-9)
+    assert hovering["com_error"] > 0.01
+    exact = diagnostics.centre_of_mass_errors(truth[:w], truth[w:], truth[w:], moving, G, min_fall=0.015)
+    assert exact == {"com_error": pytest.approx(0.0, abs=1e-12), "com_fall_ratio": pytest.approx(1.0)}
+    # the truth barely moves: no fall to compare with
+    still = np.full((20, 3, 2), 0.5)
+    assert np.isnan(diagnostics.centre_of_mass_errors(still[:6], still[6:], still[6:], np.ones(3, bool), G,
+                                                      min_fall=0.015)["com_fall_ratio"])
+
+
+def test_steps_before_trip_is_the_first_trip_or_the_length():
+    assert diagnostics.steps_before_trip(100, None, []) == 100
+    assert diagnostics.steps_before_trip(40, 40, [12, 30]) == 12
+    assert diagnostics.steps_before_trip(40, 25, []) == 25
