@@ -12,6 +12,7 @@ gns-bench's search instead, in PyG's edge order convention (an edge set, so sums
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import sys
 from dataclasses import dataclass
@@ -196,3 +197,46 @@ def one_batch(config: Config, dataset_dir: str | Path, geo_source: str | Path, s
     out.append(_compare("gradient: type embedding", simulator.type_embedding.weight.grad,
                         peer._particle_type_embedding.weight.grad))
     return out
+
+
+def one_batch_markdown(results: dict[int, list[Comparison]], dataset_dir: str | Path, hardware: str) -> str:
+    """The comparisons of `one_batch` at several steps as a markdown table."""
+    steps = sorted(results)
+    names = [c.name for c in results[steps[0]]]
+    lines = [f"Dataset `{Path(dataset_dir).name}`, the paper's model (M = 10, latent 128), fp32, batch 2, noise "
+             f"3e-4, gns-bench's initial weights (seed 0) copied into the peer; {hardware}.", "",
+             "| tensor | " + " | ".join(f"step {s}: max abs diff (relative)" for s in steps) + " |",
+             "|---|" + "---|" * len(steps)]
+    for i, name in enumerate(names):
+        cells = [f"{results[s][i].max_abs:.2e} ({results[s][i].relative:.1e})" for s in steps]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import json
+
+    from gns_bench.config import load_config
+    from gns_bench.tracking import hardware_description
+
+    parser = argparse.ArgumentParser(description="gns-bench and geoelements/gns fed one batch with the same "
+                                                 "weights: tensor by tensor")
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--geo", type=Path, required=True, help="a geoelements/gns checkout (holding gns/)")
+    parser.add_argument("--steps", type=int, nargs="+", default=[0, 1, 7], help="which training steps' batches")
+    parser.add_argument("--out", type=Path, default=None, help="write one_batch.md and one_batch.json here")
+    args = parser.parse_args(argv)
+    config = load_config(None, ["train.steps=10"])
+    results = {step: one_batch(config, args.dataset, args.geo, step=step) for step in args.steps}
+    text = one_batch_markdown(results, args.dataset, hardware_description("cpu"))
+    print(text)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "one_batch.md").write_text(text)
+        payload = {str(step): [dataclasses.asdict(c) for c in comparisons] for step, comparisons in results.items()}
+        (args.out / "one_batch.json").write_text(json.dumps(payload, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

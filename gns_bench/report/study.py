@@ -32,6 +32,10 @@ from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 # MSE covers a few steps and reads low), the MSE over the first 10 steps, and the one-step MSE.
 CURVE_PANELS = (("against_cv", "rollout MSE / constant velocity's, same steps (first {steps})"),
                 ("mse_h10", "MSE over the first 10 steps (box units²)"), ("one_step_mse", "one-step MSE (box units²)"))
+# The physical diagnostics along training (gns_bench/evaluate/diagnostics.py), against steps: 1 is the truth's.
+DIAGNOSTIC_PANELS = (("gravity_ratio", "gravity ratio, one step on true windows"),
+                     ("rollout_gravity_ratio", "gravity ratio along the rollout"),
+                     ("com_fall_ratio", "centre-of-mass fall, ours / truth"))
 DPI = 80
 
 
@@ -130,6 +134,38 @@ def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: in
     return path
 
 
+def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | None:
+    """The physical diagnostics against training steps, one line per run; None when no run logged them."""
+    fig, axes = plt.subplots(1, len(DIAGNOSTIC_PANELS), figsize=(4.2 * len(DIAGNOSTIC_PANELS), 3.2))
+    drawn = False
+    colours = plt.get_cmap("tab10")
+    for index, (name, group) in enumerate(groups.items()):
+        for seed_index, row in enumerate(group):
+            for ax, (metric, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+                points = [(step, value) for step, value in (row.record.curves.get(f"curve/{metric}", [])
+                                                            if row.ok else []) if math.isfinite(value)]
+                if not points:
+                    continue
+                drawn = True
+                x, y = zip(*points, strict=True)
+                ax.plot(x, y, marker="o", ms=3, lw=1, color=colours(index % 10),
+                        ls="-" if seed_index == 0 else "--", label=name if seed_index == 0 else None)
+    if not drawn:
+        plt.close(fig)
+        return None
+    for ax, (_, label) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+        ax.axhline(1.0, color="black", lw=0.8, ls=":")
+        ax.axhline(0.0, color="grey", lw=0.5)
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("training steps")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
 def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir: Path,
                        compare: bool = True) -> list[str]:
     """The study's table, its error-against-time figure and (`compare`: not at the smoke tier) its winner."""
@@ -152,4 +188,12 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
                   f"Each run evaluated along the way on the first `train.eval_trajectories` validation trajectories "
                   f"(rolled out {rollout_steps} steps), against its training time so far; dashed: further seeds.", "",
                   f"![error against training time]({figure.name})", ""]
+    diagnostics = diagnostics_figure(groups, out_dir / "diagnostics_vs_steps.png")
+    if diagnostics is not None:
+        lines += ["## Physical diagnostics against training steps", "",
+                  "The same evaluations' physical diagnostics (`gns_bench/evaluate/diagnostics.py`): the predicted "
+                  "acceleration of particles the truth has in free fall over g, on true windows and along the "
+                  "model's own rollout, and how far the material's centre of mass falls over the truth's fall; "
+                  "1 (dotted) is the truth, 0 a block that hovers.", "",
+                  f"![physical diagnostics against training steps]({diagnostics.name})", ""]
     return lines

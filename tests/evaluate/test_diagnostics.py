@@ -74,3 +74,37 @@ def test_steps_before_trip_is_the_first_trip_or_the_length():
     assert diagnostics.steps_before_trip(100, None, []) == 100
     assert diagnostics.steps_before_trip(40, 40, [12, 30]) == 12
     assert diagnostics.steps_before_trip(40, 25, []) == 25
+
+
+def test_evaluation_logs_the_diagnostics(tiny_dataset):
+    """Every evaluation carries the diagnostics: a model that predicts no acceleration at all (a block that
+    hovers) scores gravity ratios near 0, the ground truth replayed (a perfect model) near 1."""
+    import torch
+
+    from gns_bench.config import EvalConfig, load_config, resolve_for_dataset
+    from gns_bench.data.format import load_split, read_metadata
+    from gns_bench.evaluate.evaluate import evaluate
+    from gns_bench.train.checkpoints import build_simulator
+
+    meta = read_metadata(tiny_dataset)
+    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
+                                                    "model.message_passing_steps=1"]),
+                                 meta.default_connectivity_radius)
+    simulator = build_simulator(config, meta).eval()
+    # zero the decoder: the network outputs 0, so the acceleration is acc_mean (about 0): nothing falls
+    for p in simulator.network.decoder.parameters():
+        torch.nn.init.zeros_(p)
+    simulator.acc_mean.zero_()
+    test = load_split(tiny_dataset, "test")[:1]
+    evaluation = evaluate(simulator, test, EvalConfig(one_step_windows=2, distribution_steps=0), progress=False,
+                          gravity=meta.gravity, walls=meta.walls)
+    m = evaluation.metrics
+    assert abs(m["gravity_ratio"]) < 1e-6 and abs(m["rollout_gravity_ratio"]) < 1e-6
+    assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "steps_before_trip"} <= set(m)
+    assert m["steps_before_trip"] <= m["rollout_steps"]
+    # the same model with gravity as its mean acceleration falls freely: ratio 1 on free-falling particles
+    simulator.acc_mean.copy_(torch.tensor(meta.gravity))
+    falling = evaluate(simulator, test, EvalConfig(one_step_windows=2, distribution_steps=0), progress=False,
+                       gravity=meta.gravity, walls=meta.walls)
+    assert falling.metrics["gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
+    assert falling.metrics["rollout_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)

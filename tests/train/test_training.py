@@ -178,3 +178,23 @@ def test_threads_stay_within_the_usable_cores_and_oversubscription_is_said(monke
             watch.sample()
     assert watch.report() == "load above 2.5 (2 cores) at 1 of 3 logged steps, up to 5.3"
     assert loop.LoadWatch(own_threads=2).report() == ""
+
+
+def test_start_window_share_draws_from_the_start_and_leaves_the_release_sampler_alone(tiny_dataset: Path) -> None:
+    """`train.start_window_share`: a share 0 draws exactly the release's uniform windows; share 1 only windows
+    among the first `start_windows` of a trajectory; a share in between about that share of them."""
+    from gns_bench.data.windows import WindowSampler
+
+    trajectories = load_split(tiny_dataset, "train")
+    uniform = WindowSampler(trajectories, 6, seed=3)
+    zero = WindowSampler(trajectories, 6, seed=3, start_share=0.0, start_windows=4)
+    assert all(uniform.samples(step, 8) == zero.samples(step, 8) for step in range(20))
+    early = WindowSampler(trajectories, 6, seed=3, start_share=1.0, start_windows=4)
+    frames = [t for step in range(50) for _, t in early.samples(step, 8)]
+    assert min(frames) == 5 and max(frames) == 8  # last input frames 5 .. 5 + 4 - 1
+    half = WindowSampler(trajectories, 6, seed=3, start_share=0.5, start_windows=4)
+    share = np.mean([t <= 8 for step in range(200) for _, t in half.samples(step, 8)])
+    uniform_share = 4 / (trajectories[0].num_steps - 6)  # what uniform draws put there by chance
+    assert 0.5 < share < 0.5 + uniform_share + 0.08
+    with pytest.raises(ValueError, match="start_share"):
+        WindowSampler(trajectories, 6, seed=3, start_share=1.5)
