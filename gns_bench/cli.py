@@ -446,6 +446,26 @@ def summary_lines(metrics: dict[str, float]) -> list[str]:
             f"constant velocity  {cv:.4g} over the same steps: GNS / constant velocity = {rollout / cv:.3g}x"]
 
 
+def _add_rehash(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("rehash", help="record a dataset's current content in its metadata.json (after changing its "
+                                      "files on purpose)",
+                       description="Runs refuse a dataset whose files no longer match metadata.json's content_hash "
+                                   "(a changed dataset would pass for the original in run keys and reports). After "
+                                   "changing the files on purpose, this records their hash; the statistics "
+                                   "(vel_*, acc_*) are not recomputed.")
+    p.add_argument("dataset", type=Path, help=DATASET_HELP)
+
+
+def cmd_rehash(args: argparse.Namespace) -> None:
+    from gns_bench.data.format import read_metadata
+    from gns_bench.data.integrity import rehash
+
+    before = read_metadata(args.dataset).content_hash
+    after = rehash(args.dataset)
+    print(f"{args.dataset}: content_hash {before} -> {after}" if before != after
+          else f"{args.dataset}: content_hash unchanged ({after})")
+
+
 COMMANDS = {
     "generate": (_add_generate, cmd_generate),
     "render": (_add_render, cmd_render),
@@ -460,6 +480,7 @@ COMMANDS = {
     "bench": (_add_bench, cmd_bench),
     "ui": (_add_ui, cmd_ui),
     "quickstart": (_add_quickstart, cmd_quickstart),
+    "rehash": (_add_rehash, cmd_rehash),
 }
 
 
@@ -490,13 +511,17 @@ def main(argv: list[str] | None = None) -> int:
     args, extra = parser.parse_known_args(argv)
     # Overrides may also follow options (`train DATA --out R model.latent_size=64`); anything else is an error.
     stray = [item for item in extra if item.startswith("-") or "=" not in item or not hasattr(args, "overrides")]
+    keys = [item for item in stray if not item.startswith("-") and "=" not in item and "." in item]
+    if keys and hasattr(args, "overrides"):
+        parser.error(f"override {keys[0]!r} has no value: overrides are section.key=value, e.g. {keys[0]}=1000")
     if stray:
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
     try:
         COMMANDS[args.command][1](args)
-    except (DatasetError, ConfigError, FileExistsError, FileNotFoundError, ValueError, RuntimeError) as exc:
+    except (DatasetError, ConfigError, FileExistsError, FileNotFoundError, NotADirectoryError, ValueError,
+            RuntimeError) as exc:
         print(f"gns-bench {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -461,7 +461,8 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     merged = {section: dict(values) for section, values in data.items()}
     for item in overrides:
         if "=" not in item:
-            raise ConfigError(f"override {item!r}: expected section.key=value")
+            raise ConfigError(f"override {item!r} has no value: write section.key=value, e.g. "
+                              f"{item if '.' in item else 'train.steps'}=1000")
         dotted, raw = item.split("=", 1)
         if dotted.count(".") != 1:
             raise ConfigError(f"override {item!r}: expected section.key=value, e.g. model.latent_size=64")

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,7 @@ from gns_bench.config import (
     saved_config,
 )
 from gns_bench.data.format import DatasetError, load_split, read_metadata
+from gns_bench.data.integrity import check_before_run
 from gns_bench.devices import resolve_device
 from gns_bench.evaluate.evaluate import Evaluation, evaluate, rollout_errors, save_rollouts
 from gns_bench.evaluate.monitors import MonitorTripped
@@ -34,7 +37,7 @@ from gns_bench.evaluate.rollout import rollout
 from gns_bench.model.simulator import LearnedSimulator
 from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, load_simulator
-from gns_bench.train.loop import load_training_split, train
+from gns_bench.train.loop import check_resumable, load_training_split, train
 
 DEFAULT_EXPERIMENT = "gns-bench"
 RUN_ID_FILE = "mlflow_run_id"
@@ -102,6 +105,40 @@ def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bo
         run.log_artifact(path, "evaluation")
 
 
+OWNER_FILE = "owner.pid"  # the process training in a run directory, while it does
+
+
+@contextmanager
+def owned(out_dir: Path) -> Iterator[None]:
+    """Mark `out_dir` as this process's while the block runs (`end_if_abandoned` reads it)."""
+    owner = out_dir / OWNER_FILE
+    owner.write_text(f"{os.getpid()}\n")
+    try:
+        yield
+    finally:
+        owner.unlink(missing_ok=True)
+
+
+def end_if_abandoned(out_dir: Path) -> bool:
+    """A run directory whose MLflow run is still RUNNING with no live process behind it (killed with SIGKILL, a
+    lost machine): end that run KILLED, so the store shows no run as live that nothing will finish. True when
+    it did."""
+    id_file = out_dir / RUN_ID_FILE
+    if not id_file.exists():
+        return False
+    owner = out_dir / OWNER_FILE
+    if owner.exists():
+        try:
+            os.kill(int(owner.read_text().strip()), 0)
+            return False  # its process is alive (perhaps still training)
+        except (ValueError, ProcessLookupError):
+            pass
+        except PermissionError:  # alive, another user's
+            return False
+    reason = f"its process ended without finishing it (found by the next command on {out_dir})"
+    return tracking.end_abandoned_run(id_file.read_text().strip(), reason)
+
+
 def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
               experiment: str = DEFAULT_EXPERIMENT, run_name: str | None = None, resume: bool = False,
               evaluate_after: bool = True, progress: bool = True,
@@ -114,11 +151,24 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
     The config is resolved against the dataset first, so the run logs plain numbers (`resolve_for_dataset`).
     Under torchrun only rank 0 tracks and evaluates; the other ranks just train.
     """
-    # Everything that can refuse the input happens before a run folder or an MLflow run exists.
+    # Everything that can refuse the input happens before a run folder or an MLflow run exists: the data and
+    # their content hash, every split the run will read (and any other there), the checkpoint of a resume.
     meta = read_metadata(dataset_dir)
     config = resolve_for_dataset(config, meta.default_connectivity_radius)
+    min_length = config.model.input_sequence_length + 1
+    evaluated_on = eval_dataset_dir or dataset_dir
+    needed_there = (((config.eval.split,) if evaluate_after else ()) + (("valid",) if config.train.eval_every else ()))
+    if eval_dataset_dir is None:
+        check_before_run(dataset_dir, meta, needed=("train", *needed_there), min_length=min_length)
+    else:
+        check_before_run(dataset_dir, meta, needed=("train",), min_length=min_length)
+        check_before_run(evaluated_on, read_metadata(evaluated_on), needed=needed_there, min_length=min_length)
     trajectories = load_training_split(config, dataset_dir, meta)
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NotADirectoryError(f"{out_dir} is a file; the run's output (--out) is a directory")
+    if resume and (out_dir / CHECKPOINT_NAME).exists():  # a checkpoint that cannot resume fails before MLflow
+        check_resumable(out_dir / CHECKPOINT_NAME, config, meta)
     if distributed.launched_rank() != 0:
         train(config, dataset_dir, out_dir, resume=resume, progress=False, trajectories=trajectories)
         return RunSummary("", out_dir, None, {})
@@ -128,16 +178,16 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
     out_dir.mkdir(parents=True, exist_ok=True)
     device = str(resolve_device(config.train.device))
     previous = out_dir / RUN_ID_FILE
+    end_if_abandoned(out_dir)
     run_id = previous.read_text().strip() if resume and previous.exists() else None
     params = {**config.flat(), "dataset_dir": str(dataset_dir), **(extra_params or {})}
     tags = {**tracking.environment_tags(device), **_dataset_tags(dataset_dir), "kind": "train",
             **(extra_tags or {})}
     tracked = (tracking.continue_run(run_id, tags=tags) if run_id
                else tracking.start_run(experiment, run_name or out_dir.name, params=params, tags=tags))
-    with tracked as run:
+    with tracked as run, owned(out_dir):
         previous.write_text(run.run_id + "\n")
         run.log_dict(config.to_dict(), "config.json")
-        evaluated_on = eval_dataset_dir or dataset_dir
         if eval_dataset_dir is not None:
             run.set_tags({f"eval_{key}": value for key, value in _dataset_tags(eval_dataset_dir).items()})
         on_eval = _curve_logger(run, config, evaluated_on, device) if config.train.eval_every else None

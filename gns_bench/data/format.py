@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -154,35 +155,59 @@ class Metadata:
         return meta
 
     def validate(self, path: str | os.PathLike = "metadata.json") -> None:
+        """Every field's type and range, the first problem a `DatasetError` naming the field (one schema: this)."""
         def fail(key: str, expected: str) -> None:
             raise DatasetError(path, f"expected {expected}, got {getattr(self, key)!r}", field=key)
 
-        if self.dim not in (2, 3):
+        def number(value: Any) -> bool:  # a JSON number (bools are ints in Python, not numbers here)
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+        def numbers(value: Any, count: int | None = None) -> bool:
+            return (isinstance(value, list) and all(number(v) for v in value)
+                    and (count is None or len(value) == count))
+
+        if not (isinstance(self.dim, int) and not isinstance(self.dim, bool) and self.dim in (2, 3)):
             fail("dim", "2 or 3")
-        bounds = np.asarray(self.bounds, dtype=float)
-        if bounds.shape != (self.dim, 2) or not np.all(bounds[:, 1] > bounds[:, 0]):
-            fail("bounds", f"{self.dim} pairs [lo, hi] with lo < hi")
-        if not (isinstance(self.sequence_length, int) and self.sequence_length > 0):
+        if not (isinstance(self.bounds, list) and len(self.bounds) == self.dim
+                and all(numbers(pair, 2) and pair[0] < pair[1] for pair in self.bounds)):
+            fail("bounds", f"{self.dim} pairs of numbers [lo, hi] with lo < hi")
+        if not (isinstance(self.sequence_length, int) and not isinstance(self.sequence_length, bool)
+                and self.sequence_length > 0):
             fail("sequence_length", "a positive integer")
-        if not self.default_connectivity_radius > 0:
+        if not (number(self.default_connectivity_radius) and self.default_connectivity_radius > 0):
             fail("default_connectivity_radius", "a positive number")
+        if not (number(self.dt) and self.dt > 0):
+            fail("dt", "a positive number (seconds between stored frames)")
         for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
-            value = np.asarray(getattr(self, key), dtype=float)
-            if value.shape != (self.dim,) or not np.all(np.isfinite(value)):
-                fail(key, f"{self.dim} finite numbers")
+            if not numbers(getattr(self, key), self.dim):
+                fail(key, f"a list of {self.dim} finite numbers")
         for key in ("vel_std", "acc_std"):
-            if np.any(np.asarray(getattr(self, key)) < 0):
+            if any(v < 0 for v in getattr(self, key)):
                 fail(key, "non-negative standard deviations")
         if (self.context_mean is None) != (self.context_std is None):
             fail("context_std", "context_mean and context_std both present or both absent")
-        if self.context_mean is not None and len(self.context_mean) != len(self.context_std):
-            fail("context_std", f"{len(self.context_mean)} numbers, as many as context_mean")
+        if self.context_mean is not None:
+            if not numbers(self.context_mean):
+                fail("context_mean", "a list of finite numbers")
+            if not numbers(self.context_std, len(self.context_mean)) or any(v < 0 for v in self.context_std):
+                fail("context_std", f"{len(self.context_mean)} non-negative numbers, as many as context_mean")
+        if not isinstance(self.name, str):
+            fail("name", "a string")
+        if not isinstance(self.particle_types, dict):
+            fail("particle_types", "an object {name: id}")
         for name, type_id in self.particle_types.items():
-            if not (isinstance(type_id, int) and 0 <= type_id < NUM_PARTICLE_TYPES):
+            if not (isinstance(type_id, int) and not isinstance(type_id, bool) and 0 <= type_id < NUM_PARTICLE_TYPES):
                 raise DatasetError(path, f"particle type '{name}' has id {type_id!r}, expected an integer "
                                    f"in [0, {NUM_PARTICLE_TYPES})", field="particle_types")
-        if self.gravity is not None and len(self.gravity) != self.dim:
-            fail("gravity", f"{self.dim} numbers")
+        if not isinstance(self.walls, bool):
+            fail("walls", "true or false")
+        if self.gravity is not None and not numbers(self.gravity, self.dim):
+            fail("gravity", f"a list of {self.dim} finite numbers")
+        if self.generator is not None and not isinstance(self.generator, dict):
+            fail("generator", "an object")
+        if self.content_hash is not None and not (isinstance(self.content_hash, str) and len(self.content_hash) == 64
+                                                  and all(c in "0123456789abcdef" for c in self.content_hash)):
+            fail("content_hash", "a SHA-256 as 64 lowercase hex digits")
 
 
 def read_metadata(dataset_dir: str | os.PathLike) -> Metadata:
@@ -220,6 +245,10 @@ def validate_trajectory(traj: Trajectory, meta: Metadata, path: str | os.PathLik
     if pos.shape[0] < min_length:
         raise DatasetError(path, f"T={pos.shape[0]} frames is shorter than the {min_length} frames "
                            "one training window needs", key, "position")
+    if pos.shape[0] != meta.sequence_length + 1:
+        raise DatasetError(path, f"T={pos.shape[0]} frames, but metadata 'sequence_length' {meta.sequence_length} "
+                           f"says every trajectory holds sequence_length + 1 = {meta.sequence_length + 1}", key,
+                           "position")
     if pos.shape[1] == 0:
         raise DatasetError(path, "no particles (N=0)", key, "position")
     if types.ndim != 1 or types.shape[0] != pos.shape[1]:
@@ -323,6 +352,34 @@ def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None
     return trajectories
 
 
+def check_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,
+                min_length: int = 7, bounds_tolerance: float = DEFAULT_BOUNDS_TOLERANCE) -> int:
+    """Validate one split as `load_split` does, one trajectory in memory at a time (seconds for a large split, no
+    copy of it kept); returns its trajectory count. Raises `DatasetError` for the first problem."""
+    meta = meta or read_metadata(dataset_dir)
+    path = Path(dataset_dir) / f"{split}.h5"
+    if not path.is_file():
+        raise DatasetError(path, "no such file")
+    count = 0
+    try:
+        with h5py.File(path, "r") as f:
+            keys = list(f.keys())
+            if not keys:
+                raise DatasetError(path, "no trajectories")
+            for key in keys:
+                if not (key.isdigit() and len(key) == 5):
+                    raise DatasetError(path, "unexpected top-level key; trajectories are groups named "
+                                       "00000, 00001, ...", key)
+                validate_trajectory(_read_group(path, key, f[key]), meta, path, key, min_length=min_length,
+                                    bounds_tolerance=bounds_tolerance)
+                count += 1
+    except DatasetError:
+        raise
+    except Exception as exc:  # truncated or not an HDF5 file at all
+        raise DatasetError(path, f"unreadable or truncated HDF5 file ({exc})") from exc
+    return count
+
+
 def iter_split(dataset_dir: str | os.PathLike, split: str) -> Iterator[Trajectory]:
     """Stream a split's trajectories without validation (for statistics and hashing of our own writes)."""
     with h5py.File(Path(dataset_dir) / f"{split}.h5", "r") as f:
@@ -330,19 +387,30 @@ def iter_split(dataset_dir: str | os.PathLike, split: str) -> Iterator[Trajector
             yield _read_group(Path(dataset_dir) / f"{split}.h5", key, f[key])
 
 
-def content_hash(dataset_dir: str | os.PathLike) -> str:
-    """SHA-256 of the arrays of every split in order: independent of HDF5 layout and file timestamps."""
-    digest = hashlib.sha256()
+def content_hashes(dataset_dir: str | os.PathLike) -> tuple[str, dict[str, str]]:
+    """SHA-256 of the arrays of every split in order (independent of HDF5 layout and file timestamps), and of
+    each split alone, in one pass over the files."""
+    whole = hashlib.sha256()
+    splits = {}
     for split in SPLITS:
         if not (Path(dataset_dir) / f"{split}.h5").exists():
             continue
-        digest.update(split.encode())
+        part = hashlib.sha256()
+        for digest in (whole, part):
+            digest.update(split.encode())
         for traj in iter_split(dataset_dir, split):
             for array in (traj.position, traj.particle_type, traj.step_context, traj.birth_step):
                 if array is not None:
-                    digest.update(str(array.shape).encode())
-                    digest.update(np.ascontiguousarray(array).tobytes())
-    return digest.hexdigest()
+                    for digest in (whole, part):
+                        digest.update(str(array.shape).encode())
+                        digest.update(np.ascontiguousarray(array).tobytes())
+        splits[split] = part.hexdigest()
+    return whole.hexdigest(), splits
+
+
+def content_hash(dataset_dir: str | os.PathLike) -> str:
+    """`metadata.json`'s `content_hash`: SHA-256 of the arrays of every split (`content_hashes`)."""
+    return content_hashes(dataset_dir)[0]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -414,7 +482,7 @@ class DatasetWriter:
         for split in SPLITS:
             if self._counts[split]:  # an evaluation-only dataset (a stress scene) may hold only `test`
                 load_split(self.partial_dir, split, meta)  # raises on anything wrong; nothing is renamed
-        meta.content_hash = content_hash(self.partial_dir)
+        meta.content_hash, meta.extra["split_hashes"] = content_hashes(self.partial_dir)
         write_json_atomic(self.partial_dir / "metadata.json", meta.to_json())
         if self.out_dir.exists():
             import shutil

@@ -223,6 +223,14 @@ def load_training_split(config: Config, dataset_dir: str | Path, metadata: Metad
     return load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
 
 
+def check_resumable(path: Path, config: Config, metadata: Metadata) -> dict:
+    """The checkpoint at `path`, loaded, if `config` on `metadata`'s dataset can resume from it; raises otherwise
+    (callers check this before they open anything a failure would leave behind)."""
+    saved = load_checkpoint(path, "cpu")
+    _check_resumable(saved, config, metadata, path)
+    return saved
+
+
 def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path) -> None:
     if saved["metadata"].get("content_hash") != metadata.content_hash:
         raise ValueError(f"{path}: checkpoint was trained on dataset {saved['metadata'].get('content_hash')}, "
@@ -275,7 +283,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    step, earlier_wall_time, speed = 0, 0.0, None
+    step, earlier_wall_time, speed, resumed_window = 0, 0.0, None, []
     if resume and checkpoint_path.exists():
         saved = load_checkpoint(checkpoint_path, device)
         _check_resumable(saved, config, metadata, checkpoint_path)
@@ -285,6 +293,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         earlier_wall_time = float(saved.get("wall_time_s", 0.0))
         if "speed" in saved:  # a resumed run trains on with the settings it chose
             speed = autotune.SpeedSettings(**saved["speed"])
+        # the losses since the last logged point, so the next point averages the same steps as without a stop
+        resumed_window = [float(v) for v in saved.get("log_window", [])]
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
     if speed is None:
@@ -308,7 +318,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         save_checkpoint(checkpoint_path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
-            "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed)})
+            "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed), "log_window": list(window_losses)})
 
     def evaluate_now(at_step: int) -> None:
         nonlocal paused
@@ -320,7 +330,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         on_eval(snapshot.eval(), at_step, seconds)
         paused += time.perf_counter() - began
 
-    start_step, losses, window_losses = step, [], []
+    start_step, losses, window_losses = step, [], resumed_window
     bar = tqdm(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
                desc="train")
     evaluating = on_eval is not None and tc.eval_every > 0

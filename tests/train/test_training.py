@@ -48,6 +48,22 @@ def test_interrupt_and_resume_continues_the_same_loss_curve(tiny_dataset: Path, 
     assert part.losses + rest.losses == straight.losses  # bit for bit
 
 
+def test_a_run_stopped_between_two_log_points_logs_the_same_curve(tiny_dataset: Path, tmp_path: Path) -> None:
+    """The logged loss is the mean since the last logged point; a resume carries the steps since then (the
+    checkpoint's `log_window`), so every logged point equals the uninterrupted run's."""
+    config = load_config(None, QUICK + ["train.steps=30", "train.checkpoint_every=7", "train.log_every=5"])
+    straight: list[tuple[int, float]] = []
+    train(config, tiny_dataset, tmp_path / "straight", progress=False,
+          on_log=lambda step, m: straight.append((step, m["train_loss"])))
+    resumed: list[tuple[int, float]] = []
+    train(config, tiny_dataset, tmp_path / "resumed", progress=False, stop_after=13,  # between 10 and 15
+          on_log=lambda step, m: resumed.append((step, m["train_loss"])))
+    train(config, tiny_dataset, tmp_path / "resumed", resume=True, progress=False,
+          on_log=lambda step, m: resumed.append((step, m["train_loss"])))
+    assert [s for s, _ in straight] == [5, 10, 15, 20, 25, 30]
+    assert resumed == straight  # every point, bit for bit
+
+
 def test_stop_after_runs_the_start_of_the_whole_run_and_the_rate_probe_uses_it(tiny_dataset: Path,
                                                                                tmp_path: Path) -> None:
     config = load_config(None, QUICK + ["train.steps=30", "train.checkpoint_every=7"])
