@@ -398,6 +398,8 @@ def evaluate_run(checkpoint: str | Path, dataset_dir: str | Path, eval_config: E
     torch_device = str(resolve_device(device))
     simulator, config, _ = load_simulator(checkpoint, torch_device)
     config = replace(config, eval=eval_config or config.eval)
+    check_before_run(dataset_dir, read_metadata(dataset_dir), needed=(config.eval.split,),
+                     min_length=simulator.input_sequence_length + 1)  # before an MLflow run exists
     checkpoint = Path(checkpoint)
     out_dir = Path(out_dir) if out_dir else _next_to(checkpoint) / "evaluation"
     params = {**config.flat(), "checkpoint": str(checkpoint), "dataset_dir": str(dataset_dir)}

@@ -19,6 +19,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -463,7 +464,9 @@ class DatasetWriter:
                 for key in keys[complete:]:
                     del f[key]
                 return complete
-        except OSError:  # the file itself was cut off: start the split again
+        except OSError as exc:  # the file itself was cut off: start the split again
+            print(f"{path}: unreadable ({exc}), left by an interrupted write; generating this split again",
+                  file=sys.stderr)
             path.unlink()
             return 0
 

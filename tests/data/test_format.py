@@ -96,6 +96,17 @@ def test_writer_resumes_and_drops_a_torn_trajectory(tmp_path: Path) -> None:
     np.testing.assert_array_equal(loaded[2].position, trajs[2].position)
 
 
+def test_writer_says_when_it_discards_a_damaged_partial_file(tmp_path: Path, capsys) -> None:
+    rng = np.random.default_rng(3)
+    writer = DatasetWriter(tmp_path / "ds")
+    writer.add("train", make_traj(rng))
+    path = writer.partial_dir / "train.h5"
+    path.write_bytes(path.read_bytes()[:100])  # the file itself cut off by a killed generation
+    assert DatasetWriter(tmp_path / "ds").count("train") == 0
+    err = capsys.readouterr().err
+    assert "train.h5" in err and "generating this split again" in err
+
+
 def test_unfinished_dataset_is_not_loadable(tmp_path: Path) -> None:
     writer = DatasetWriter(tmp_path / "ds")
     writer.add("train", make_traj(np.random.default_rng(0)))
