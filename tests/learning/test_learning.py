@@ -150,20 +150,21 @@ def test_break_noise_target_not_corrected(data: Path, tmp_path: Path, monkeypatc
 
 @pytest.mark.slow
 def test_break_rollout_start_never_seen(tmp_path: Path):
-    """Blocks released at rest left out of training and windows drawn uniformly (the release's sampler): blocks
-    that start nearly at rest in the air hover (the failure of the cpu-tier models); a quarter of the windows
-    drawn from the first 20 of each trajectory (`train.start_window_share`) makes them fall."""
+    """Blocks released at rest left out of training and windows drawn uniformly (the release's sampler), batch 2:
+    blocks that start nearly at rest in the air hover (the failure of the cpu-tier models); a quarter of the
+    windows drawn from the first 20 of each trajectory (`train.start_window_share`) makes them fall."""
     rng = np.random.default_rng(0)
     kinds = ("free_fall", "rest", "landing")
     train_set = scenes.mixed_split(rng, checks.TRAIN_TRAJECTORIES, checks.FRAMES, kinds=kinds)
     valid = scenes.mixed_split(rng, 1, checks.FRAMES, kinds=kinds)
-    test = [scenes.trajectory(rng, ["drop", "free_fall", "drop", "free_fall"], checks.FRAMES) for _ in range(2)]
+    test = [scenes.trajectory(rng, ["free_fall"] * 4, checks.FRAMES) for _ in range(2)]
     data = scenes.write(tmp_path / "data", train_set, valid, test)
-    uniform = checks.trained(data, tmp_path / "uniform", train=BATCH)
-    assert any("block centres fell" in f for f in free_fall_failures(uniform, data))
-    weighted = checks.trained(data, tmp_path / "start", train={**BATCH, "start_window_share": 0.25,
-                                                              "start_windows": 20})
-    assert free_fall_failures(weighted, data) == []
+    uniform = checks.trained(data, tmp_path / "uniform")
+    hovering = [fall for fall in checks.free_fall(uniform, test).com_fall_ratios if fall < 0.1]
+    assert len(hovering) >= 2, "the release's sampler did not leave a block hovering"
+    weighted = checks.trained(data, tmp_path / "start", train={"start_window_share": 0.25, "start_windows": 20})
+    falls = checks.free_fall(weighted, test).com_fall_ratios
+    assert sum(fall < 0.1 for fall in falls) == 0 and sum(0.8 <= fall <= 1.25 for fall in falls) >= 6, falls
 
 
 def test_noise_module_is_the_one_training_uses():
