@@ -36,7 +36,7 @@ def test_overrides_are_typed() -> None:
      ("train.noise_std=-1", "train.noise_std: must be >= 0"),
      ("train.position_correction=1.5", "must be in \\[0, 1\\]"),
      ("optim.lr=1", "unknown section \\[optim\\]"),
-     ("model.latent_size", "expected section.key=value")],
+     ("model.latent_size", "has no value: write section.key=value")],
 )
 def test_bad_values_name_the_key(override: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):

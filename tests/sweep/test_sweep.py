@@ -57,7 +57,7 @@ def test_every_sweep_file_loads_and_plans() -> None:
                          "position_encoding", "noise_correction", "mlp_depth", "latent_size", "self_edges",
                          "global_latent", "gravity_bias", "linear_encoder_decoder"}
     assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate",
-                                                             "study-cpu_budget"}
+                                                             "study-cpu_budget", "study-gravity_curve"}
     assert {load_sweep(p).kind for p in files} == {"domain", "ablation", "stress", "study", "baseline"}
     assert load_sweep(SWEEPS_DIR / "studies" / "aggregate.toml").kind == "study"
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
