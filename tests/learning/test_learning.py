@@ -134,7 +134,7 @@ def test_break_wall_features_dropped(data: Path, tmp_path: Path, monkeypatch: py
 @pytest.mark.slow
 def test_break_noise_target_not_corrected(data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """The target taken from the clean window (the model is never asked to undo the input noise, Sec. 4.3):
-    the rollouts' own errors are never corrected."""
+    the rollouts' own errors are never corrected, and every check fails."""
 
     def uncorrected(window, next_position, position_noise, position_correction=0.0):
         clean_acceleration = next_position - 2.0 * window[:, -1] + window[:, -2]
@@ -143,9 +143,11 @@ def test_break_noise_target_not_corrected(data: Path, tmp_path: Path, monkeypatc
 
     monkeypatch.setattr(loop, "noisy_training_pair", uncorrected)
     simulator = checks.trained(data, tmp_path / "run", train=BATCH)
-    failures = (free_fall_failures(simulator, data) + support_failures(simulator, "rest", REST_DEVIATION)
-                + support_failures(simulator, "landing", LANDED_DEVIATION))
-    assert failures
+    # measured: 24 particles of the resting blocks went through the floor (8.1 R from the truth), 17 of the
+    # landing ones, and two free-falling blocks hovered (centre falls 0.11 and 0.16 of the truth's)
+    assert support_failures(simulator, "rest", REST_DEVIATION)
+    assert support_failures(simulator, "landing", LANDED_DEVIATION)
+    assert free_fall_failures(simulator, data)
 
 
 @pytest.mark.slow
