@@ -443,7 +443,25 @@ def summary_lines(metrics: dict[str, float]) -> list[str]:
             f"rollout MSE        {rollout:.4g} over {steps:.0f} steps on average"
             + (" (a monitor stopped some rollouts)" if stopped else "")
             + f" (moving particles only: {metrics.get('rollout_mse_moving', float('nan')):.4g})",
-            f"constant velocity  {cv:.4g} over the same steps: GNS / constant velocity = {rollout / cv:.3g}x"]
+            f"constant velocity  {cv:.4g} over the same steps: GNS / constant velocity = {rollout / cv:.3g}x",
+            *physics_lines(metrics)]
+
+
+def physics_lines(metrics: dict[str, float]) -> list[str]:
+    """The physical diagnostics, each against the truth's 1 (gns_bench/evaluate/diagnostics.py)."""
+    nan = float("nan")
+    one_step, along = metrics.get("gravity_ratio", nan), metrics.get("rollout_gravity_ratio", nan)
+    lines = []
+    if one_step == one_step or along == along:  # not NaN: some particle was in free fall
+        lines.append(f"gravity learned     {one_step:.3g} of g on true windows, {along:.3g} along the rollout "
+                     "(1 = the truth's; 0 = blocks that hover)")
+    fall = metrics.get("com_fall_ratio", nan)
+    if fall == fall:
+        lines.append(f"centre of mass      fell {fall:.3g} of the truth's fall by the rollout's end")
+    through = metrics.get("wall_pass_fraction", nan)
+    if through == through:
+        lines.append(f"through a wall      {100 * through:.3g}% of moving particles (the truth: none)")
+    return lines
 
 
 def _add_rehash(sub: argparse._SubParsersAction) -> None:

@@ -185,6 +185,11 @@ def test_the_summary_prints_each_metric_beside_its_baseline_over_the_same_steps(
                            "baseline_cv_rollout_mse": 0.07104, "baseline_cv_same_steps_mse": 0.0150})
     assert lines[2] == "constant velocity  0.015 over the same steps: GNS / constant velocity = 0.191x"
     assert "over 70 steps" in lines[1] and "stopped" in lines[1] and "0.07104" not in "".join(lines)
+    assert len(lines) == 3  # no diagnostics logged: no lines for them
+    hovering = summary_lines({"rollout_mse": 0.01, "baseline_cv_same_steps_mse": 0.02, "gravity_ratio": 0.74,
+                              "rollout_gravity_ratio": -0.16, "com_fall_ratio": -0.04, "wall_pass_fraction": 0.33})
+    assert "0.74 of g on true windows, -0.16 along the rollout" in hovering[3]
+    assert "fell -0.04 of the truth's" in hovering[4] and "33% of moving particles" in hovering[5]
 
 
 @pytest.mark.parametrize("architecture", ["cconv", "dpi"])
