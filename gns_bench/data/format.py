@@ -323,16 +323,15 @@ def _read_group(path: Path, key: str, group: Any) -> Trajectory:
     return Trajectory(pos, types, ctx, birth)
 
 
-def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,
-               min_length: int = 7, bounds_tolerance: float = DEFAULT_BOUNDS_TOLERANCE) -> list[Trajectory]:
-    """Load and validate every trajectory of one split. Returns nothing unless all are valid."""
+def _validated(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None, min_length: int,
+               bounds_tolerance: float) -> Iterator[Trajectory]:
+    """Each trajectory of one split, validated, one in memory at a time; `DatasetError` for the first problem."""
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; expected one of {SPLITS}")
     meta = meta or read_metadata(dataset_dir)
     path = Path(dataset_dir) / f"{split}.h5"
     if not path.is_file():
         raise DatasetError(path, "no such file")
-    trajectories = []
     try:
         with h5py.File(path, "r") as f:
             keys = list(f.keys())
@@ -345,40 +344,24 @@ def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None
                 traj = _read_group(path, key, f[key])
                 validate_trajectory(traj, meta, path, key, min_length=min_length,
                                     bounds_tolerance=bounds_tolerance)
-                trajectories.append(traj)
+                yield traj
     except DatasetError:
         raise
     except Exception as exc:  # truncated or not an HDF5 file at all
         raise DatasetError(path, f"unreadable or truncated HDF5 file ({exc})") from exc
-    return trajectories
+
+
+def load_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,
+               min_length: int = 7, bounds_tolerance: float = DEFAULT_BOUNDS_TOLERANCE) -> list[Trajectory]:
+    """Load and validate every trajectory of one split. Returns nothing unless all are valid."""
+    return list(_validated(dataset_dir, split, meta, min_length, bounds_tolerance))
 
 
 def check_split(dataset_dir: str | os.PathLike, split: str, meta: Metadata | None = None, *,
                 min_length: int = 7, bounds_tolerance: float = DEFAULT_BOUNDS_TOLERANCE) -> int:
     """Validate one split as `load_split` does, one trajectory in memory at a time (seconds for a large split, no
     copy of it kept); returns its trajectory count. Raises `DatasetError` for the first problem."""
-    meta = meta or read_metadata(dataset_dir)
-    path = Path(dataset_dir) / f"{split}.h5"
-    if not path.is_file():
-        raise DatasetError(path, "no such file")
-    count = 0
-    try:
-        with h5py.File(path, "r") as f:
-            keys = list(f.keys())
-            if not keys:
-                raise DatasetError(path, "no trajectories")
-            for key in keys:
-                if not (key.isdigit() and len(key) == 5):
-                    raise DatasetError(path, "unexpected top-level key; trajectories are groups named "
-                                       "00000, 00001, ...", key)
-                validate_trajectory(_read_group(path, key, f[key]), meta, path, key, min_length=min_length,
-                                    bounds_tolerance=bounds_tolerance)
-                count += 1
-    except DatasetError:
-        raise
-    except Exception as exc:  # truncated or not an HDF5 file at all
-        raise DatasetError(path, f"unreadable or truncated HDF5 file ({exc})") from exc
-    return count
+    return sum(1 for _ in _validated(dataset_dir, split, meta, min_length, bounds_tolerance))
 
 
 def iter_split(dataset_dir: str | os.PathLike, split: str) -> Iterator[Trajectory]:
