@@ -27,17 +27,14 @@ class ConfigError(ValueError):
     """A bad configuration value; the message names the source and the key."""
 
 
-# How the papers name each architecture (for reports; the config value stays the lowercase key).
-ARCHITECTURE_NAMES = {"gns": "GNS", "cconv": "CConv", "dpi": "DPI-Net"}
-
-
 @dataclass
 class ModelConfig:
     """The learned simulator (paper Sec. 3-4.2, App. A; DeepMind's release, learning_to_simulate/)."""
 
-    # The learned simulator: the paper's GNS, or one of the baselines it is compared with (Sec. 5.5, App. D),
-    # each with its own section ([cconv], [dpi]) for what it does differently.
-    architecture: Literal["gns", "cconv", "dpi"] = "gns"
+    # The learned simulator: the paper's GNS, one of the baselines it is compared with (Sec. 5.5, App. D), each
+    # with its own section ([cconv], [dpi]) for what it does differently, or a registered model of one's own
+    # (gns_bench/simulators.py: a registered name, an entry point's, or "package.module:SPEC").
+    architecture: str = "gns"
     message_passing_steps: int = 10  # M
     latent_size: int = 128
     mlp_hidden_layers: int = 2
@@ -68,6 +65,12 @@ class ModelConfig:
     neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"
 
     def validate(self) -> None:
+        from gns_bench import simulators
+
+        try:
+            simulators.get(self.architecture)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         _require(self.message_passing_steps >= 0, "model.message_passing_steps", "must be >= 0")
         _require(self.latent_size > 0, "model.latent_size", "must be > 0")
         _require(self.mlp_hidden_layers >= 0, "model.mlp_hidden_layers", "must be >= 0")

@@ -14,9 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from gns_bench import tracking
+from gns_bench import simulators, tracking
 from gns_bench.config import (
-    ARCHITECTURE_NAMES,
     STRESS_TESTS,
     Config,
     ConfigError,
@@ -61,7 +60,7 @@ def _dataset_tags(dataset_dir: str | Path) -> dict[str, Any]:
 def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],
                                prefix: str, model: str = "GNS") -> list[Path]:
     """Rollouts (npz), per-trajectory metrics (csv) and pictures of the best and worst rollouts (`model`: the
-    architecture's name, `config.ARCHITECTURE_NAMES`, on the pictures)."""
+    architecture's name, `simulators.display_name`, on the pictures)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [save_rollouts(evaluation, out_dir / f"{prefix}_rollouts.npz")]
     tripped = {f"{i:05d}": r.stopped_by for i, r in enumerate(evaluation.rollouts)
@@ -257,7 +256,7 @@ def _evaluate_into(run: tracking.Run, simulator: LearnedSimulator, dataset_dir: 
     # what the evaluation cost (the front page sums it over a campaign; `sweep/timing.py` estimates it before)
     evaluation.metrics["evaluation_seconds"] = time.perf_counter() - started
     _log_evaluation(run, evaluation, out_dir, meta.bounds, eval_config.split,
-                    ARCHITECTURE_NAMES[simulator.architecture])
+                    simulators.display_name(simulator.architecture))
     return evaluation
 
 
@@ -293,7 +292,7 @@ def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_d
         logged.update(values)
         run.set_tags({f"generalisation/{variant}/{key}": value for key, value in evaluation.tags.items()})
         for path in write_evaluation_artifacts(evaluation, stress_dir / variant, scene_meta.bounds, variant,
-                                               ARCHITECTURE_NAMES[simulator.architecture]):
+                                               simulators.display_name(simulator.architecture)):
             run.log_artifact(path, f"generalisation/{variant}")
     run.set_tags({"stress/tests": ",".join(r.name for r in outcome.results),
                   "generalisation/datasets": ",".join(outcome.generalisation)})
@@ -382,7 +381,7 @@ def save_rollout(checkpoint: str | Path, dataset_dir: str | Path, split: str = "
     errors = rollout_errors(result, trajectories[index].num_steps)
     png = plot_rollout(result, stem.with_name(stem.name + ".png"), meta.bounds,
                        title=f"rollout MSE {errors['rollout_mse']:.3g}",
-                       name=ARCHITECTURE_NAMES[simulator.architecture])
+                       name=simulators.display_name(simulator.architecture))
     return SavedRollout(npz, Path(png), result.predicted.shape[0], errors)
 
 

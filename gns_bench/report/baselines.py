@@ -22,7 +22,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from gns_bench.config import ARCHITECTURE_NAMES, StressConfig  # noqa: E402
+from gns_bench import simulators  # noqa: E402
+from gns_bench.config import StressConfig  # noqa: E402
 from gns_bench.data.format import RIGID_PARTICLE_TYPE  # noqa: E402
 from gns_bench.evaluate.plots import STEP_LABEL, config_colours  # noqa: E402
 from gns_bench.evaluate.result import RolloutResult  # noqa: E402
@@ -46,7 +47,7 @@ from gns_bench.report.collect import (  # noqa: E402
     mean_std,
     stress_sweeps,
 )
-from gns_bench.report.reference import display_name, domain_reference  # noqa: E402
+from gns_bench.report.reference import baseline_rollout_mse, display_name, domain_reference  # noqa: E402
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
@@ -103,6 +104,33 @@ def best_run(rows: list[RunRow]) -> RunRow | None:
     return min(done, key=relative_to_cv, default=None)
 
 
+def validation_error(row: RunRow) -> float:
+    """A run's error on the validation split: its training curve's last point (`train.eval_every`, on the first
+    validation trajectories), rollout MSE over constant velocity's on the same steps; NaN where none was logged."""
+    baseline = row.metric("curve/baseline_cv_same_steps_mse")
+    return row.metric("curve/rollout_mse") / baseline if baseline > 0 else math.nan
+
+
+def chosen_run(sweep: SweepSpec, rows: list[RunRow]) -> tuple[RunRow | None, str]:
+    """The baseline's setting to set beside the GNS, and how it was chosen. As the paper tuned CConv by a sweep
+    (Sec. 5.5, App. D.1), the run with the lowest validation error (`validation_error`) when every finished run
+    has one; the test split only scores the choice. Without a validation measurement there is nothing fair to
+    choose by (the test split would score its own choice): the run at the sweep's default setting stands in."""
+    done = [r for r in rows if r.ok]
+    if done and all(math.isfinite(validation_error(r)) for r in done):
+        return min(done, key=validation_error), "chosen on the validation split"
+    default = [r for r in done if all(_matches(r.planned.axes.get(k), v) for k, v in sweep.default.items())]
+    if default and sweep.default:
+        return default[0], "the default setting (no validation error logged to choose by)"
+    return (done[0], "its only setting") if len(done) == 1 else (None, "")
+
+
+def _matches(a: object, b: object) -> bool:
+    if isinstance(a, float | int) and isinstance(b, float | int) and not isinstance(a, bool):
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-15)
+    return a == b
+
+
 @dataclass(frozen=True)
 class Comparison:
     """The GNS (mean over its domain sweep's runs) against a baseline's best run, like for like."""
@@ -144,13 +172,13 @@ def compare(gns_rows: list[RunRow], best: RunRow | None) -> Comparison:
 def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow], compare_runs: bool) -> list[str]:
     ref = domain_reference(sweep.domain)
     gns = mean_std([r.metric("rollout_mse") for r in gns_rows])[0]
-    best = best_run(rows)
+    best, how = chosen_run(sweep, rows)
     ours = best.metric("rollout_mse") if best else math.nan
     architecture = architecture_of(sweep)
-    paper_cconv = ref.cconv_rollout_mse if ref and architecture == "cconv" else None
+    paper_cconv = baseline_rollout_mse(ref, architecture)
     like = compare(gns_rows, best)
     return [f"{display_name(sweep.domain)} ({architecture})", fmt(gns),
-            fmt(ours) + (f" (`{best.planned.name}`)" if best else ""),
+            fmt(ours) + (f" (`{best.planned.name}`: {how})" if best else ""),
             f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare_runs and best and gns > 0 else "—",
             f"{times(like.gns)} / {times(like.baseline)}" if compare_runs else "—",
             f"{fmt(like.gns_steps)} / {fmt(like.baseline_steps)}" if compare_runs else "—",
@@ -193,8 +221,8 @@ def costs(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]]) -> list
     out, seen = [], set()
     for sweep, rows, gns_rows in collected:
         name = display_name(sweep.domain)
-        best = best_run(rows)
-        for model, model_rows in (("GNS", gns_rows), (ARCHITECTURE_NAMES[architecture_of(sweep)],
+        best, _ = chosen_run(sweep, rows)
+        for model, model_rows in (("GNS", gns_rows), (simulators.display_name(architecture_of(sweep)),
                                                       [best] if best else [])):
             cost = _cost(name, model, model_rows) if (name, model) not in seen else None
             if cost is not None:
@@ -229,7 +257,7 @@ def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
     for sweep in baseline_sweeps():
         name = display_name(sweep.domain)
         pair = [("GNS", domains[sweep.domain].plan(tier)[0]),
-                (ARCHITECTURE_NAMES[architecture_of(sweep)], sweep.plan(tier)[0])]
+                (simulators.display_name(architecture_of(sweep)), sweep.plan(tier)[0])]
         absent = [path.name for _, run in pair for path in (training_data(run, data_root),
                                                              evaluation_data(run, data_root))
                   if not dataset_complete(path)]
@@ -256,7 +284,7 @@ def measured_section(measured: dict[str, Any] | None) -> list[str]:
     machine in one sitting, and the baseline's over the GNS's."""
     if not measured or not measured.get("rows"):
         return []
-    models = list(ARCHITECTURE_NAMES.values())  # the GNS first
+    models = list(simulators.display_names().values())  # the GNS first
     rows = sorted(measured["rows"], key=lambda r: (r["domain"], models.index(r["model"])))
     dirty = " (with uncommitted changes)" if measured["git_sha"].endswith("-dirty") else ""
     lines = ["### Measured side by side", "",
@@ -283,7 +311,7 @@ def measured_section(measured: dict[str, Any] | None) -> list[str]:
 
 # One colour per model in every figure of this report, distinct by construction (`config_colours` of the
 # display names; the architectures' keys would hash GNS and DPI-Net onto one colour).
-MODEL_COLOURS = config_colours(ARCHITECTURE_NAMES.values())
+MODEL_COLOURS = config_colours(simulators.display_names().values())
 
 
 def cost_figure(points: list[Cost], path: Path) -> Path | None:
@@ -355,14 +383,15 @@ def verdict_line(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow]) -
     """Does the GNS beat this baseline sweep's best run here (`Comparison.verdict`), and did it in the paper."""
     ref = domain_reference(sweep.domain)
     name, architecture = display_name(sweep.domain), architecture_of(sweep)
-    like = compare(gns_rows, best_run(rows))
-    baseline = ARCHITECTURE_NAMES[architecture]
+    like = compare(gns_rows, chosen_run(sweep, rows)[0])
+    baseline = simulators.display_name(architecture)
     if like.verdict == "—":
         return f"- {name}, GNS against {baseline}: not both run yet."
     paper = ""
-    if architecture == "cconv" and ref and ref.cconv_rollout_mse and ref.rollout_mse:
-        paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(ref.cconv_rollout_mse)} "
-                 f"rollout MSE, {ratio(ref.cconv_rollout_mse, ref.rollout_mse)}).")
+    paper_baseline = baseline_rollout_mse(ref, architecture)
+    if paper_baseline and ref.rollout_mse:
+        paper = (f" The paper: GNS better ({fmt(ref.rollout_mse)} against about {fmt(paper_baseline)} "
+                 f"rollout MSE, {ratio(paper_baseline, ref.rollout_mse)}).")
     return f"- {name}, GNS against {baseline}: **{like.verdict}**, {like.sentence()}.{paper}"
 
 
@@ -442,7 +471,8 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
         if not here:
             continue
-        best = {"gns": best_run(here[0][2]), **{architecture_of(sweep): best_run(rows) for sweep, rows, _ in here}}
+        best = {"gns": best_run(here[0][2]),
+                **{architecture_of(sweep): chosen_run(sweep, rows)[0] for sweep, rows, _ in here}}
         with tempfile.TemporaryDirectory() as tmp:
             gns, gns_from = gns_rollouts(best["gns"], (stand_ins or {}).get(domain, []), Path(tmp))
             models = {"gns": gns, **{name: _rollouts(row, Path(tmp) / name) for name, row in best.items()
@@ -451,7 +481,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         if any(models.values()):  # drawn afresh; else the last report's pictures stand
             record = {"gns_from": gns_from} if gns_from else {}
             # a model without rollouts here is left out of the pictures, and the report says why
-            missing = {ARCHITECTURE_NAMES[name]: "not run yet" if best[name] is None else MISSING_ROLLOUTS
+            missing = {simulators.display_name(name): "not run yet" if best[name] is None else MISSING_ROLLOUTS
                        for name, rollouts in models.items() if not rollouts}
             if missing:
                 record["missing"] = missing
@@ -459,7 +489,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                 # each model's curve from its rollouts here, else the one the last report kept of the same run
                 curves = {}
                 for key, rollouts in models.items():
-                    name, row = ARCHITECTURE_NAMES[key], best[key]
+                    name, row = simulators.display_name(key), best[key]
                     means = rigidity_means(rollouts)
                     if means and row is not None:
                         curves[name] = {**means, "run_id": row.run_id,
@@ -472,7 +502,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                 kept_names = [name for name in record["rigidity"] if name in missing]
                 if kept_names:
                     record["rigidity_kept"] = kept_names
-            shown = [(ARCHITECTURE_NAMES[name], rollouts[0]) for name, rollouts in models.items()
+            shown = [(simulators.display_name(name), rollouts[0]) for name, rollouts in models.items()
                      if rollouts and rollouts[0].predicted.shape[0]]
             if shown:  # the baselines alone where the GNS's rollouts are gone: the failure is theirs to show
                 record["strip"] = [name for name, _ in shown]

@@ -147,7 +147,12 @@ def budget(rows: list[RunRow]) -> str:
     if final_rates:
         models = [f"{m}, final learning rate {'/'.join(final_rates)}" for m in models]
     return (f"{'/'.join(f'{s:,}' for s in steps)} steps of a GNS with {' / '.join(models)}, {fmt(wall)} s, "
-            f"{hardware}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps")
+            f"{hardware}, data tier {'/'.join(tiers)}, rollouts of {fmt(horizon)} steps in {rollout_precision(done)}")
+
+
+def rollout_precision(rows: list[RunRow]) -> str:
+    """What the network's rollouts ran in (`eval.precision`): the reported numbers' precision."""
+    return "/".join(sorted({r.param("eval.precision", "fp32") for r in rows})) or "—"
 
 
 SMOKE_NOTICE = ("**Smoke tier: a pipeline check, not a result.** Tiny models trained for a few steps on tiny "

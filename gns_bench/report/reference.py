@@ -66,3 +66,10 @@ def display_name(domain_id: str) -> str:
     """The domain as the paper names it (Table 1), or its id where the paper lacks it."""
     ref = domain_reference(domain_id)
     return ref.name if ref else domain_id
+
+
+def baseline_rollout_mse(reference, architecture: str) -> float | None:
+    """The paper's rollout MSE of a baseline architecture on a domain, where it reports one (CConv's, read off
+    Fig. 5's bar chart: `<architecture>_rollout_mse` in paper_reference.toml); None otherwise."""
+    value = getattr(reference, f"{architecture}_rollout_mse", None) if reference is not None else None
+    return value or None

@@ -12,7 +12,7 @@ import math
 import tempfile
 from pathlib import Path
 
-from gns_bench.config import ARCHITECTURE_NAMES
+from gns_bench import simulators
 from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
@@ -52,7 +52,19 @@ from gns_bench.report.index import write_index
 from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
-from gns_bench.report.verdict import ERROR, ONE_STEP, STEPS_BEFORE_STOP, judge_axis
+from gns_bench.report.verdict import (
+    EQUIVALENCE_MARGIN,
+    ERROR,
+    ONE_STEP,
+    STEPS_BEFORE_STOP,
+    Arm,
+    cpu_kind,
+    effect,
+    error_measure,
+    interval_text,
+    judge_axis,
+    matched,
+)
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary
 
@@ -170,6 +182,31 @@ def ablation_stats(axis: str, values: list, rows: list[RunRow], like_for_like: b
             for m, _ in figures.ablation_panels(like_for_like)}
 
 
+def against_default(axis: str, values: list, rows: list[RunRow], reference: dict) -> dict[int, str]:
+    """Per axis value (its index in `values`), the verdict's error measure against the default's, as the verdict
+    computes it: ratio of geometric means over seeds with its 95% interval."""
+    metric, _ = error_measure(rows)
+    done = [r for r in rows if r.ok]
+    if not metric or "default" not in reference:
+        return {}
+
+    def arm(value) -> Arm:
+        at = [r for r in done if r.planned.axes[axis] == value]
+        return Arm.of([r.metric(metric) for r in at], [cpu_kind(r) for r in at])
+
+    defaults = [i for i, v in enumerate(values) if axis_value_label(v) == axis_value_label(reference["default"])]
+    if not defaults:
+        return {}
+    base = arm(values[defaults[0]])
+    out = {defaults[0]: "1 (the default)"}
+    for i, value in enumerate(values):
+        if i == defaults[0]:
+            continue
+        a, b, _ = matched(arm(value), base)
+        out[i] = interval_text(effect(a, b)[0]) if a and b else "—"
+    return out
+
+
 def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compare: bool = True) -> list[str]:
     lines = []
     for axis in sweep.axes:
@@ -188,15 +225,21 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
                       + (", and so do the figure's panels *vs constant velocity, same steps* (there the mean over "
                          "seeds of each run's ratio; in the table the ratio of the means) and *rollout steps before "
                          "a stop*." if compare else "."), ""]
-        lines += ["| value | seeds | one-step MSE | rollout MSE | OT | MMD | rollout steps | vs constant velocity |",
-                  "|---|---|---|---|---|---|---|---|"]
+        judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
+        against = against_default(axis, values, rows, reference) if judged else {}
+        lines += ["| value | seeds | one-step MSE | rollout MSE | OT | MMD | rollout steps | vs constant velocity "
+                  "| vs the default (the verdict's measure) |", "|---|---|---|---|---|---|---|---|---|"]
         for i, value in enumerate(values):
             at_value = [r for r in rows if r.planned.axes[axis] == value]
             seeds = stats["rollout_mse"][i][2]
             cells = [mean_cell(*stats[m][i]) for m, _ in figures.PANELS]
-            cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—"]
+            cells += [steps_covered(at_value), (cv_ratio(at_value) if seeds else MISSING) if compare else "—",
+                      against.get(i, "—")]
             lines.append(f"| {axis_value_label(value)} | {seeds}/{len(at_value)} | " + " | ".join(cells) + " |")
-        judged = compare and sweep.kind == "ablation"  # the paper's findings are about the GNS's own axes
+        if against:
+            lines += ["", f"*vs the default*: {error_measure(rows)[1] or 'no common horizon'}, geometric mean over "
+                      "seeds against the default's, with its 95% interval, runs on the default's CPU kinds only "
+                      "(`gns_bench/report/verdict.py`): the number the verdict below judges."]
         lines += ["", *verdict_lines(axis, rows, reference), ""] if judged else [""]
     return lines
 
@@ -205,7 +248,7 @@ def baseline_section(sweep: SweepSpec, tier: str, rows: list[RunRow], reports_ro
     """A baseline beside the GNS on the same domain and tier (the domain sweep's runs), ours and the paper's
     (Sec. 5.5, App. D.1): the baselines report's row for this sweep (`report/baselines.py`: the raw ratio and,
     like for like, each model against constant velocity over its own steps) and its verdict."""
-    architecture = ARCHITECTURE_NAMES[baselines.architecture_of(sweep)]
+    architecture = simulators.display_name(baselines.architecture_of(sweep))
     domain = next((s for s in domain_sweeps() if s.domain == sweep.domain), None)
     gns_rows = collect(domain, tier, reports_root) if domain else []
     lines = [f"## {architecture} beside the GNS (Sec. 5.5)", "",
@@ -223,6 +266,14 @@ def _link_report(name: str, tier: str) -> str:
     return f"[{name}/{tier}](../../{name}/{tier}/README.md)"
 
 
+VERDICT_RULES = ("*How the verdicts are drawn* (`gns_bench/report/verdict.py`): each comparison is the ratio of "
+                 "geometric means over seeds with its 95% t interval on the log errors (Welch's, or pooled when an "
+                 "arm has one seed); a direction is *reproduced* when the interval lies wholly on the paper's side "
+                 "of 1, *contradicted* when wholly on the other, else *inconclusive*. A finding of little difference "
+                 f"is *reproduced* only by an equivalence test (90% interval within {EQUIVALENCE_MARGIN}x either "
+                 "way, at least two seeds a side). Only runs on the same CPU kind are compared.")
+
+
 def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
     """The computed verdicts on the paper's finding for this axis (gns_bench/report/verdict.py): on the error;
     where a health monitor stopped rollouts, on how many steps they ran before the stop; and where the paper
@@ -234,22 +285,18 @@ def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
     finished = sum(r.ok for r in rows)
     so_far = "" if finished == len(rows) else (f" So far: from {finished} of the {len(rows)} planned runs; the rest "
                                                 "are not finished, and the verdict may change with them.")
-    lines = [f"**Verdict ({axis}): {error.verdict}.** Paper: {reference.get('summary', '—')}. Ours: {error.detail}; "
-             "error = rollout MSE / constant velocity's over the same steps." + so_far]
+    lines = [f"**Verdict ({axis}): {error.verdict}.** Paper: {reference.get('summary', '—')}. Ours: {error.detail}."
+             + so_far]
     if length:
-        lines += ["", f"**Verdict on rollout length ({axis}): {length.verdict}.** The error above is taken over the "
-                      "steps before each rollout's stop, so it cannot see a model whose rollouts collapse sooner; "
-                      f"this one compares the mean number of steps they ran (column *rollout steps*). Ours: "
-                      f"{length.detail}." + so_far]
+        lines += ["", f"**Verdict on rollout length ({axis}): {length.verdict}.** The error above is taken over steps "
+                      "every rollout reached, so it cannot see a model whose rollouts collapse sooner; this one "
+                      f"compares the mean number of steps they ran (column *rollout steps*). Ours: {length.detail}."
+                      + so_far]
     if one_step:
         lines += ["", f"**Verdict on the one-step error ({axis}): {one_step.verdict}.** Paper (Sec. 5.4, Fig. 4's "
                       f"upper row): {reference.get('one_step_summary', '—')}. Ours: {one_step.detail}; one-step MSE "
                       "on the test trajectories' uncorrupted inputs (column *one-step MSE*)." + so_far]
-    if reference.get("no_effect"):
-        lines += ["", "*How strong a test this is:* a finding of little difference counts as reproduced whenever "
-                      "every gap stays inside the band of the default's seed spread, so it excludes only effects "
-                      "larger than that band; a direction (Sec. 5.4's major axes) has to clear the same band to "
-                      "count. More seeds or a longer budget narrow the band and make this test harder."]
+    lines += ["", VERDICT_RULES]
     return lines
 
 
@@ -309,7 +356,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     if not done:
         return lines + ["No finished run with rollouts.", ""], {}
     row = done[0]
-    model = ARCHITECTURE_NAMES[row.planned.config.model.architecture]
+    model = simulators.display_name(row.planned.config.model.architecture)
     linked = _shared_pictures(row, out_dir)
     if linked:  # another report already draws this run's rollouts: link them, do not copy them
         for stale in [*out_dir.glob("rollout_*.png"), *out_dir.glob("rollout_*.gif"), out_dir / "rigidity.png"]:
@@ -360,7 +407,7 @@ def _fairer_pick(shown: RunRow, done: list[RunRow]) -> list[str]:
     """A warning when the run drawn (lowest raw rollout MSE) is not the lowest against constant velocity over the
     same steps: a run whose rollouts a monitor stopped early has a raw MSE over few steps, which reads low, so
     the picture is then not of the run the verdicts and the baselines report would call best."""
-    fair = baselines.best_run(done)  # the baselines report's choice: lowest against constant velocity
+    fair = baselines.best_run(done)  # lowest against constant velocity over the same steps
     if fair is None or fair is shown or not math.isfinite(relative_to_cv(shown)):
         return []
     return [f"Like for like this is not the best run: against constant velocity over the same steps it reaches "

@@ -71,8 +71,8 @@ def cache_key(config: TrainConfig, simulator: Simulator, nodes: int, device: tor
     """The machine, the model's shape and the graph size (to a power of two) a choice holds for."""
     parameters = sum(p.numel() for p in simulator.parameters())
     shape = f"{getattr(simulator, 'architecture', 'gns')} {parameters} parameters D{simulator.dim}"
-    if getattr(simulator, "architecture", "gns") == "gns":
-        model = simulator.config
+    model = getattr(simulator, "config", None)
+    if hasattr(model, "shared_processor"):  # the GNS's processor settings (Sec. 4.2)
         shape += f" M{model.message_passing_steps} shared{int(model.shared_processor)} global{int(model.global_latent)}"
     size = 2 ** round(math.log2(max(nodes, 1)))
     return (f"{machine_key(device)} | {shape} | ~{size} nodes | batch {config.batch_size} | "

@@ -9,6 +9,7 @@ from typing import Any
 
 import torch
 
+from gns_bench import simulators
 from gns_bench.config import Config, resolve_for_dataset, saved_config
 from gns_bench.data.format import Metadata
 from gns_bench.devices import resolve_device
@@ -49,15 +50,7 @@ def build_simulator(config: Config, metadata: Metadata) -> Simulator:
     """A fresh simulator of `config.model.architecture` (the config resolved against `metadata` if it is not
     yet) on that dataset: the paper's GNS, or a baseline it is compared with (Sec. 5.5)."""
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
-    if config.model.architecture == "cconv":
-        from gns_bench.model.cconv import CConvSimulator
-
-        return CConvSimulator(config.cconv, metadata, input_sequence_length=config.model.input_sequence_length)
-    if config.model.architecture == "dpi":
-        from gns_bench.model.dpi import DPISimulator
-
-        return DPISimulator(config.dpi, metadata, input_sequence_length=config.model.input_sequence_length)
-    return LearnedSimulator(config.model, metadata, config.train.noise_std)
+    return simulators.build(config, metadata)
 
 
 def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"

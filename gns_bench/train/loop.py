@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from gns_bench import simulators as registry
 from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
@@ -58,13 +59,9 @@ def learning_rate(step: int, config: TrainConfig) -> float:
 
 
 def schedule(config: Config) -> Callable[[int], float]:
-    """The learning rate by step: the paper's exponential decay (`train.*`), or, for the CConv baseline, its
-    authors' piecewise schedule over the run (`cconv.*`)."""
-    if config.model.architecture == "cconv":
-        from gns_bench.model.cconv import learning_rate as cconv_learning_rate
-
-        return lambda step: cconv_learning_rate(config.cconv, step, config.train.steps)
-    return lambda step: learning_rate(step, config.train)
+    """The learning rate by step, as the architecture's spec gives it (the paper's exponential decay, `train.*`,
+    unless the simulator brings its own, as CConv does)."""
+    return registry.get(config.model.architecture).schedule(config)
 
 
 def adam(parameters: Iterable[torch.nn.Parameter], lr: float, eps: float = 1e-8) -> torch.optim.Adam:
@@ -78,26 +75,17 @@ def adam(parameters: Iterable[torch.nn.Parameter], lr: float, eps: float = 1e-8)
 
 def unrolled_steps(config: Config) -> int:
     """Frames after each training window the architecture's loss needs (CConv's authors unroll 2 steps)."""
-    return config.cconv.unrolled_steps if config.model.architecture == "cconv" else 1
+    return registry.get(config.model.architecture).unrolled_steps(config)
 
 
 def batch_loss(simulator: Simulator, batch: GraphBatch, position_noise: torch.Tensor, config: Config,
                model: torch.nn.Module | None = None, num_moving: int | None = None, world_size: int = 1,
                precision: str = "fp32") -> torch.Tensor:
-    """The architecture's own training loss on a batch: the GNS's noisy one-step loss (`training_loss`),
-    CConv's unrolled one (its authors train it without noise: train.noise_std = 0 in its sweeps), DPI-Net's on
-    normalised velocities."""
-    architecture = getattr(simulator, "architecture", "gns")
-    if architecture == "cconv":
-        window = torch.cat([batch.window, batch.future if batch.future is not None else batch.target[:, None]], 1)
-        return simulator.unrolled_loss(window, batch.particle_type, batch.batch, batch.context, precision=precision,
-                                       position_noise=position_noise,
-                                       position_correction=config.train.position_correction)
-    if architecture == "dpi":  # normalised next velocities; noise as the GNS's (their recipe: train.noise_std = 0)
-        return simulator.training_loss(batch.window, batch.target, batch.particle_type, batch.batch, position_noise,
-                                       precision=precision)
-    return training_loss(simulator, batch, position_noise, config.train.position_correction, model, num_moving,
-                         world_size, precision)
+    """The architecture's own training loss on a batch (its `SimulatorSpec.loss`): the GNS's noisy one-step loss
+    (`training_loss`), CConv's unrolled one, DPI-Net's on normalised velocities, or a registered model's."""
+    spec = registry.get(config.model.architecture)
+    return spec.loss(simulator, batch, position_noise, config, model=model, num_moving=num_moving,
+                     world_size=world_size, precision=precision)
 
 
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
@@ -275,11 +263,11 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)
     rate = schedule(config)
-    if config.model.architecture != "gns" and group.world_size > 1:
+    spec = registry.get(config.model.architecture)
+    if not spec.data_parallel and group.world_size > 1:
         raise ConfigError("data-parallel training (torchrun) covers the GNS only, not model.architecture = "
                           f"{config.model.architecture!r}")
-    optimiser = adam(simulator.parameters(), rate(0),
-                     config.cconv.adam_eps if config.model.architecture == "cconv" else 1e-8)
+    optimiser = adam(simulator.parameters(), rate(0), spec.adam_eps(config))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME

@@ -42,8 +42,9 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     (row,) = [line for line in text.splitlines() if line.startswith("| tiny (cconv) |")]
     cells = [c.strip() for c in row.strip("|").split("|")]
     rows = baselines.collect(baseline, "smoke", tmp_path / "reports")
-    best = min(rows, key=baselines.relative_to_cv)  # like for like: against constant velocity over the same steps
-    assert cells[2] == f"{best.metric('rollout_mse'):.3g} (`{best.planned.name}`)"  # the best of its sweep
+    best, how = baselines.chosen_run(baseline, rows)  # no validation point at the smoke tier: the default setting
+    assert best.planned.axes == {"train.noise_std": 0.0} and how.startswith("the default setting")
+    assert cells[2] == f"{best.metric('rollout_mse'):.3g} (`{best.planned.name}`: {how})"
     assert cells[3] == "—" and text.splitlines()[2].startswith("**Smoke tier")  # smoke compares nothing
     gns = baselines.collect(domain, "smoke", tmp_path / "reports")[0].metric("rollout_mse")
     gns_rows = baselines.collect(domain, "smoke", tmp_path / "reports")
@@ -99,6 +100,24 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert nothing["rows"] == [] and len(nothing["missing"]) == 1
     assert "no dataset tiny-smoke-s0" in nothing["missing"][0]
     assert "### Measured side by side" not in "\n".join(baselines.measured_section(nothing))
+
+
+def test_the_baselines_setting_is_chosen_on_validation_never_on_test() -> None:
+    sweep = load_sweep(SWEEPS_DIR / "baselines" / "cconv-goop.toml")
+    planned = {p.axes["train.noise_std"]: p for p in sweep.plan("cpu")}
+
+    def row(noise: float, test: float, valid: float | None) -> RunRow:
+        metrics = {"test/rollout_mse": test, "test/baseline_cv_same_steps_mse": 1.0}
+        if valid is not None:
+            metrics |= {"curve/rollout_mse": valid, "curve/baseline_cv_same_steps_mse": 1.0}
+        return RunRow(planned[noise], RunRecord(f"id{noise}", planned[noise].name, "FINISHED", 0, metrics=metrics))
+
+    # the noise-free run is better on test, the noisy one on validation: validation chooses
+    chosen, how = baselines.chosen_run(sweep, [row(0.0, 0.3, 0.6), row(3e-4, 0.5, 0.4)])
+    assert chosen.planned.axes["train.noise_std"] == 3e-4 and how == "chosen on the validation split"
+    # no validation point on one of them: nothing fair to choose by, the default stands in, even when worse on test
+    chosen, how = baselines.chosen_run(sweep, [row(0.0, 0.5, None), row(3e-4, 0.3, 0.4)])
+    assert chosen.planned.axes["train.noise_std"] == 0.0 and how.startswith("the default setting")
 
 
 @pytest.mark.parametrize(("gns", "baseline", "gns_steps", "baseline_steps", "verdict"), [

@@ -29,23 +29,24 @@ def test_the_front_page_has_a_row_per_claim(tmp_path: Path) -> None:
     assert len(axes) == 12
 
 
-def test_the_domain_row_says_how_many_ratios_cover_only_the_steps_before_a_stop(tmp_path: Path) -> None:
+def test_the_domain_row_sets_only_whole_rollouts_beside_the_papers(tmp_path: Path) -> None:
     """A stopped rollout's MSE is over the steps before the stop, the paper's over whole rollouts: the front page
-    says for how many domains its ratios to the paper's are of that kind. Two committed cpu summaries, one of
-    them edited to have stopped no rollout."""
+    sets only domains whose rollouts all ran whole beside the paper's numbers and counts the others. Two
+    committed cpu summaries, one of them edited to have stopped no rollout."""
     for domain in ("goop", "sand"):
         source = REPORTS / f"domain-{domain}" / "cpu" / "runs.json"
         (tmp_path / f"domain-{domain}" / "cpu").mkdir(parents=True)
         shutil.copy(source, tmp_path / f"domain-{domain}" / "cpu" / "runs.json")
     (row,) = domain_claim(tmp_path)
-    assert "2 of 16 domains" in row and "2 of 2 over the steps before a monitor stopped rollouts" in row
+    assert "2 of 16 domains; no domain's rollouts all ran whole; 2 with rollouts a monitor stopped" in row
+    assert "the paper's (median" not in row  # no ratio over a different number of steps than the paper's
     path = tmp_path / "domain-sand" / "cpu" / "runs.json"
     summary = json.loads(path.read_text())
     for run in summary["runs"]:
         run["metrics"]["test/rollout_stopped"] = 0.0
     path.write_text(json.dumps(summary))
     (row,) = domain_claim(tmp_path)
-    assert "1 of 2 over the steps before a monitor stopped rollouts" in row
+    assert "whole rollouts on 1: rollout MSE" in row and "1 with rollouts a monitor stopped" in row
     (tmp_path / "domain-goop" / "cpu" / "runs.json").unlink()
     (row,) = domain_claim(tmp_path)
     assert "1 of 16 domains" in row and "stopped" not in row
@@ -170,12 +171,11 @@ def test_a_long_rollout_verdict_follows_the_horizon_test_and_the_papers_finding(
     assert got["FLUIDSHAKE-BOX"][4].endswith("no failure within the horizon, unlike the paper's")
 
 
-def test_continuous_interpolates_when_no_held_out_angle_does_worse_than_the_worst_trained_one(
-        tmp_path: Path) -> None:
-    """App. C.5: the CONTINUOUS row splits the per-angle rollouts the report keeps into the angles its training
-    data left out (datasets/continuous.toml) and the trained ones, each as GNS over constant velocity on the
-    same steps. A summary (the committed smoke one, as if at the cpu tier) with a grid of angles whose
-    held-out errors sit inside the trained ones' range interpolates; one held-out angle above it does not."""
+def test_continuous_interpolates_when_held_out_angles_match_their_trained_neighbours(tmp_path: Path) -> None:
+    """App. C.5: the CONTINUOUS row pairs each held-out angle (datasets/continuous.toml) with the trained angles
+    adjacent to the held-out interval, each as GNS over constant velocity on the same steps, and asks whether the
+    held-out errors exceed their neighbours' by more than the margin (95% interval). A summary (the committed
+    smoke one, as if at the cpu tier) with a grid of angles is rewritten for each case."""
     from gns_bench.report.index import generalisation_claims
     from gns_bench.report.stability import held_out_interval
 
@@ -195,15 +195,19 @@ def test_continuous_interpolates_when_no_held_out_angle_does_worse_than_the_wors
         return line.split(" | ")
 
     held = [a for a in angles if lo <= a <= hi]
-    cells = row(lambda a: 0.5 if lo <= a <= hi else (0.9 if a == 0 else 0.2))
+    # held-out angles within a few percent of their neighbours (0.2x): interpolates
+    cells = row(lambda a: 0.2 * (1.0 + 0.02 * ((a // 5) % 3 - 1)) if lo <= a <= hi else (0.9 if a == 0 else 0.2))
     assert cells[1] == "cpu"
-    assert cells[2].startswith(f"rollout MSE over constant velocity's, same steps: held-out angles {lo:g}-{hi:g} deg "
-                               f"median 0.5x, 0.5-0.5x ({len(held)} angles); trained angles median 0.2x, 0.2-0.9x "
-                               f"({len(angles) - len(held)} angles)")
-    assert cells[4].startswith("interpolates: no held-out angle does worse than the worst trained one")
-    cells = row(lambda a: 1.5 if a == held[0] else 0.5)
-    assert cells[4].startswith(f"does not interpolate: 1 of {len(held)} held-out angles do worse than the worst "
-                               "trained one")
+    assert cells[2].startswith(f"rollout MSE over constant velocity's, same steps: held-out angles {lo:g}-{hi:g} deg ")
+    assert "held-out against the 2 trained angle(s) adjacent to them: 1x [" in cells[2]
+    assert cells[4].startswith("interpolates (held-out no worse than adjacent trained angles by more than 1.25x")
+    # 2.5x their neighbours, yet inside the range of all trained angles (0.2x-0.9x): the earlier criterion (no
+    # held-out angle worse than the worst trained one) called this interpolation; paired with its neighbours it fails
+    cells = row(lambda a: 0.5 if lo <= a <= hi else (0.9 if a == 0 else 0.2))
+    assert cells[4].startswith("does not interpolate (") and "lower end is 2.5x" in cells[4]
+    # one held-out angle far worse, the others as their neighbours: the interval spans the margin
+    cells = row(lambda a: 2.0 if a == held[0] else 0.2)
+    assert cells[4].startswith("inconclusive (")
 
 
 def test_the_scale_verdict_says_which_larger_scenes_ran_their_whole_rollout(tmp_path: Path) -> None:
