@@ -36,8 +36,8 @@ from gns_bench.data.format import Metadata, Trajectory, load_split, read_metadat
 from gns_bench.evaluate.evaluate import evaluate
 
 GEO_KEYS = ("bounds", "sequence_length", "dim", "dt", "vel_mean", "vel_std", "acc_mean", "acc_std")
-SCORED = ("rollout_mse", "mse_h10", "mse_h100", "one_step_mse", "gravity_ratio", "rollout_gravity_ratio",
-          "com_fall_ratio", "wall_pass_fraction", "rollout_flagged")
+SCORED = ("rollout_mse", "mse_h1", "mse_h10", "mse_h100", "one_step_mse", "gravity_ratio", "rollout_gravity_ratio",
+          "com_fall_ratio", "wall_pass_fraction", "rollout_flagged", "rollout_stopped", "rollout_steps")
 
 
 def export_for_geo(dataset_dir: str | Path, out_dir: str | Path, radius: float) -> Path:
@@ -166,16 +166,22 @@ def domain_config(domain: str, sweeps_dir: Path, seed: int, steps: int, seconds:
     return config_from_dict(apply_overrides(planned.to_dict(), changes), f"{domain} cpu tier, peer study")
 
 
+SCORING = 2  # units scored under an earlier rule are scored again (their training is kept)
+
+
 def score(simulator: torch.nn.Module, trajectories: list[Trajectory], meta: Metadata) -> dict[str, Any]:
-    """gns-bench's evaluation of whole rollouts in fp32 (no monitor stops one), per trajectory and mean."""
+    """gns-bench's evaluation in fp32 with its default monitors: a rollout runs to the trajectory's end unless it
+    turns non-finite, its energy runs away or its particles collapse onto each other (a collapsed patch also makes
+    each step many times dearer: a 500-step model's WATERDROP rollouts took over 10 minutes each). Particles
+    through a wall are flagged, not stopped. A stopped rollout is counted as such (`rollout_stopped`, and the
+    steps it ran); errors are compared at horizons every rollout reached."""
     from gns_bench.config import EvalConfig
 
-    config = EvalConfig(max_trajectories=len(trajectories), one_step_windows=50, precision="fp32", stop_on=[],
-                        compile=False)
+    config = EvalConfig(max_trajectories=len(trajectories), one_step_windows=50, precision="fp32", compile=False)
     evaluation = evaluate(simulator, trajectories, config, progress=False, gravity=meta.gravity, walls=meta.walls)
     rows = [{key: float(row[key]) for key in SCORED if key in row} for row in evaluation.per_trajectory]
-    return {"mean": {key: float(evaluation.metrics[key]) for key in SCORED if key in evaluation.metrics},
-            "per_trajectory": rows}
+    return {"scoring": SCORING, "per_trajectory": rows,
+            "mean": {key: float(evaluation.metrics[key]) for key in SCORED if key in evaluation.metrics}}
 
 
 @dataclass
@@ -197,20 +203,34 @@ class Study:
         return list(load_split(self.dataset_dir, "test", meta))[: self.test_trajectories]
 
 
-def _done(unit: Path) -> dict[str, Any] | None:
-    path = unit / "score.json"
+def _read(path: Path) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def _write(unit: Path, payload: dict[str, Any]) -> None:
-    partial = unit / "score.partial.json"
+def _write(path: Path, payload: dict[str, Any]) -> None:
+    partial = path.with_suffix(".partial.json")
     partial.write_text(json.dumps(payload, indent=1) + "\n")
-    partial.replace(unit / "score.json")
+    partial.replace(path)
+
+
+def _trained(unit: Path) -> dict[str, Any] | None:
+    """A unit's training record (steps, seconds), also from a score written before training had its own file."""
+    found = _read(unit / "trained.json")
+    if found is None and (scored := _read(unit / "score.json")) is not None:
+        found = {key: scored[key] for key in ("steps", "train_seconds", "load_seconds") if key in scored}
+        _write(unit / "trained.json", found)
+    return found
+
+
+def _scored(unit: Path) -> dict[str, Any] | None:
+    scored = _read(unit / "score.json")
+    return scored if scored is not None and scored.get("scoring") == SCORING else None
 
 
 def run_seed(study: Study, seed: int, log=print) -> None:
     """One seed's three units: the peer for `steps` steps, gns-bench for `steps` steps, and gns-bench for the
-    peer's wall time (its steps from its own measured rate, capped by `train.max_wall_seconds`)."""
+    peer's wall time (its steps from its own measured rate, capped by `train.max_wall_seconds`). Each unit trains
+    once (`trained.json`) and is scored under the current rule (`score.json`)."""
     from gns_bench.train.checkpoints import load_simulator
     from gns_bench.train.loop import train
 
@@ -222,31 +242,104 @@ def run_seed(study: Study, seed: int, log=print) -> None:
     geo_data = export_for_geo(study.dataset_dir, study.work / "geo-data", radius)
 
     unit = study.unit("geo-steps", seed)
-    if (geo := _done(unit)) is None:
+    if (geo := _trained(unit)) is None:
         log(f"seed {seed}: the peer, {study.steps} steps")
         trained = train_geo(study.geo_source, geo_data, unit, seed=seed, noise_std=noise, steps=study.steps)
-        simulator = load_geo(study.geo_source, geo_data, trained.model, noise, meta, radius)
-        geo = {"steps": trained.steps, "train_seconds": trained.seconds, "load_seconds": trained.load_seconds,
-               **score(simulator, tests, meta)}
-        _write(unit, geo)
-    unit = study.unit("ours-steps", seed)
-    if (ours := _done(unit)) is None:
-        log(f"seed {seed}: gns-bench, {study.steps} steps")
-        result = train(base, study.dataset_dir, unit, progress=False)
-        simulator, _, _ = load_simulator(result.checkpoint)
-        ours = {"steps": result.final_step, "train_seconds": result.wall_time_s, **score(simulator, tests, meta)}
-        _write(unit, ours)
-    unit = study.unit("ours-time", seed)
-    if _done(unit) is None:
-        budget = geo["train_seconds"]
-        steps = max(int(study.steps * budget / ours["train_seconds"]), 1)
-        log(f"seed {seed}: gns-bench for the peer's {budget:.0f} s (about {steps} steps at its rate)")
-        config = resolve_for_dataset(domain_config(study.domain, study.sweeps_dir, seed, steps, budget),
-                                     meta.default_connectivity_radius)
-        result = train(config, study.dataset_dir, unit, progress=False)
-        simulator, _, _ = load_simulator(result.checkpoint)
-        _write(unit, {"steps": result.final_step, "train_seconds": result.wall_time_s,
-                      **score(simulator, tests, meta)})
+        geo = {"steps": trained.steps, "train_seconds": trained.seconds, "load_seconds": trained.load_seconds}
+        _write(unit / "trained.json", geo)
+    if _scored(unit) is None:
+        log(f"seed {seed}: scoring the peer")
+        simulator = load_geo(study.geo_source, geo_data, unit / f"model-{geo['steps']}.pt", noise, meta, radius)
+        _write(unit / "score.json", {**geo, **score(simulator, tests, meta)})
+
+    def ours(side: str, config: Config) -> dict[str, Any]:
+        unit = study.unit(side, seed)
+        if (done := _trained(unit)) is None:
+            result = train(config, study.dataset_dir, unit, progress=False, resume=(unit / "checkpoint.pt").exists())
+            done = {"steps": result.final_step, "train_seconds": result.wall_time_s}
+            _write(unit / "trained.json", done)
+        if _scored(unit) is None:
+            log(f"seed {seed}: scoring {side}")
+            simulator, _, _ = load_simulator(unit / "checkpoint.pt")
+            _write(unit / "score.json", {**done, **score(simulator, tests, meta)})
+        return done
+
+    log(f"seed {seed}: gns-bench, {study.steps} steps")
+    same_steps = ours("ours-steps", base)
+    budget = geo["train_seconds"]
+    steps = max(int(study.steps * budget / same_steps["train_seconds"]), 1)
+    log(f"seed {seed}: gns-bench for the peer's {budget:.0f} s (about {steps} steps at its rate)")
+    ours("ours-time", resolve_for_dataset(domain_config(study.domain, study.sweeps_dir, seed, steps, budget),
+                                          meta.default_connectivity_radius))
+
+
+SIDES = {"geo-steps": "geoelements/gns, N steps", "ours-steps": "gns-bench, N steps",
+         "ours-time": "gns-bench, the peer's wall time"}
+HORIZONS = ((1, "MSE at rollout step 1"), (10, "MSE over rollout steps 1-10"), (100, "MSE over rollout steps 1-100"))
+
+
+def collect(work: Path) -> dict[str, dict[int, dict[str, Any]]]:
+    """Every unit of a study scored under the current rule: side -> seed -> its score.json."""
+    found: dict[str, dict[int, dict[str, Any]]] = {side: {} for side in SIDES}
+    for path in sorted(work.glob("*-seed*/score.json")):
+        side, seed = path.parent.name.rsplit("-seed", 1)
+        scored = json.loads(path.read_text())
+        if side in found and scored.get("scoring") == SCORING:
+            found[side][int(seed)] = scored
+    return found
+
+
+def _reached(units: list[dict[str, Any]], horizon: int) -> bool:
+    """Whether every rollout of every unit ran at least `horizon` steps (the same steps for every model)."""
+    return all(row.get("rollout_steps", 0) >= horizon for unit in units for row in unit["per_trajectory"])
+
+
+def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware: str, steps: int,
+             test_trajectories: int) -> str:
+    """One domain's table: per seed and side the steps, training time, how far its rollouts ran and its errors;
+    then each comparison as a ratio of geometric means over seeds with its 95% interval (`report.intervals`), at
+    the horizons every rollout of both sides reached."""
+    from gns_bench.report.intervals import mean_interval, ratio_interval
+
+    lines = [f"### {domain.upper()}", "",
+             f"N = {steps} steps, batch 2; {test_trajectories} test trajectories, rolled out in fp32 with "
+             f"gns-bench's default monitors (a rollout stops when non-finite, when its energy runs away or when its "
+             f"particles collapse; particles through a wall are flagged, not stopped); {hardware}, one core and one "
+             "thread per run.", "",
+             "| side | seed | steps | training s | rollouts stopped | steps run (mean) | MSE @1 | MSE 1-10 | "
+             "one-step MSE | gravity ratio (one step) | gravity ratio (rollout) | through a wall |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for side, label in SIDES.items():
+        for seed, unit in sorted(units[side].items()):
+            m = unit["mean"]
+            stopped = sum(row.get("rollout_stopped", 0) > 0 for row in unit["per_trajectory"])
+            lines.append(f"| {label} | {seed} | {unit['steps']} | {unit['train_seconds']:.0f} | "
+                         f"{stopped} of {len(unit['per_trajectory'])} | {m.get('rollout_steps', math.nan):.0f} | "
+                         f"{m.get('mse_h1', math.nan):.3g} | {m.get('mse_h10', math.nan):.3g} | "
+                         f"{m['one_step_mse']:.3g} | {m['gravity_ratio']:.2f} | {m['rollout_gravity_ratio']:.2f} | "
+                         f"{m.get('wall_pass_fraction', math.nan):.0%} |")
+    geo = units["geo-steps"]
+    compared = [("one_step_mse", "one-step MSE")] + [(f"mse_h{h}", name) for h, name in HORIZONS]
+    lines += ["", "| comparison | " + " | ".join(name for _, name in compared) + " |",
+              "|---|" + "---|" * len(compared)]
+    for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time")):
+        both = [*units[side].values(), *geo.values()]
+        cells = []
+        for key, _ in compared:
+            horizon = int(key.removeprefix("mse_h")) if key.startswith("mse_h") else 0
+            if horizon and not _reached(both, horizon):
+                cells.append("— (a rollout stopped before)")
+                continue
+            ours = [unit["mean"][key] for unit in units[side].values() if key in unit["mean"]]
+            theirs = [unit["mean"][key] for unit in geo.values() if key in unit["mean"]]
+            cells.append(ratio_interval(ours, theirs).text(3, "x"))
+        lines.append(f"| gns-bench / geoelements/gns, {what} ({len(units[side])} vs {len(geo)} seeds) | "
+                     + " | ".join(cells) + " |")
+    gravity = {side: mean_interval([u["mean"]["rollout_gravity_ratio"] for u in units[side].values()])
+               for side in SIDES}
+    lines += ["", "Gravity ratio along the rollout (1 = falls at g), mean over seeds with its 95% interval: "
+              + "; ".join(f"{SIDES[side]} {interval.text(2)}" for side, interval in gravity.items()) + "."]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -261,7 +354,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--test-trajectories", type=int, default=3)
     parser.add_argument("--sweeps", type=Path, default=Path("sweeps"))
+    parser.add_argument("--report", type=Path, default=None,
+                        help="train nothing: write the domain's table from --work into REPORT/equal_budget_<domain>.md")
     args = parser.parse_args(argv)
+    if args.report is not None:
+        from gns_bench.tracking import hardware_description
+
+        text = markdown(args.domain, collect(args.work), hardware_description("cpu"), args.steps,
+                        args.test_trajectories)
+        args.report.mkdir(parents=True, exist_ok=True)
+        (args.report / f"equal_budget_{args.domain}.md").write_text(text)
+        (args.report / f"equal_budget_{args.domain}.json").write_text(json.dumps(collect(args.work), indent=1) + "\n")
+        print(text)
+        return
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads())))
     study = Study(args.domain, args.dataset, args.work, args.geo, args.sweeps, args.steps, args.test_trajectories)
     for seed in args.seeds:
@@ -270,57 +375,3 @@ def main(argv: list[str] | None = None) -> None:
 
 if __name__ == "__main__":
     main()
-
-
-SIDES = {"geo-steps": "geoelements/gns, N steps", "ours-steps": "gns-bench, N steps",
-         "ours-time": "gns-bench, the peer's wall time"}
-RATIOS = (("rollout_mse", "whole-rollout MSE"), ("mse_h10", "MSE at rollout step 10"),
-          ("mse_h100", "MSE at rollout step 100"), ("one_step_mse", "one-step MSE"))
-
-
-def collect(work: Path) -> dict[str, dict[int, dict[str, Any]]]:
-    """Every finished unit of a study: side -> seed -> its score.json."""
-    found: dict[str, dict[int, dict[str, Any]]] = {side: {} for side in SIDES}
-    for path in sorted(work.glob("*-seed*/score.json")):
-        side, seed = path.parent.name.rsplit("-seed", 1)
-        if side in found:
-            found[side][int(seed)] = json.loads(path.read_text())
-    return found
-
-
-def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware: str, steps: int,
-             test_trajectories: int) -> str:
-    """One domain's table: per seed and side the steps, training time and errors; then each comparison as a
-    ratio of geometric means over seeds with its 95% interval (`report.intervals`)."""
-    from gns_bench.report.intervals import mean_interval, ratio_interval
-
-    lines = [f"### {domain.upper()}", "",
-             f"N = {steps} steps, batch 2; {test_trajectories} test trajectories rolled out whole in fp32 (no "
-             f"monitor stops a rollout); {hardware}, one core per run.", "",
-             "| side | seed | steps | training s | whole-rollout MSE | MSE @10 | MSE @100 | one-step MSE | "
-             "gravity ratio (one step) | gravity ratio (rollout) | centre of mass's fall |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for side, label in SIDES.items():
-        for seed, unit in sorted(units[side].items()):
-            m = unit["mean"]
-            lines.append(f"| {label} | {seed} | {unit['steps']} | {unit['train_seconds']:.0f} | "
-                         f"{m['rollout_mse']:.3g} | {m.get('mse_h10', math.nan):.3g} | "
-                         f"{m.get('mse_h100', math.nan):.3g} | {m['one_step_mse']:.3g} | "
-                         f"{m['gravity_ratio']:.2f} | {m['rollout_gravity_ratio']:.2f} | "
-                         f"{m.get('com_fall_ratio', math.nan):.2f} |")
-    lines += ["", "| comparison | " + " | ".join(name for _, name in RATIOS) + " |",
-              "|---|" + "---|" * len(RATIOS)]
-    geo = units["geo-steps"]
-    for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time")):
-        cells = []
-        for key, _ in RATIOS:
-            ours = [unit["mean"][key] for unit in units[side].values() if key in unit["mean"]]
-            theirs = [unit["mean"][key] for unit in geo.values() if key in unit["mean"]]
-            cells.append(ratio_interval(ours, theirs).text(3, "x"))
-        lines.append(f"| gns-bench / geoelements/gns, {what} ({len(units[side])} vs {len(geo)} seeds) | "
-                     + " | ".join(cells) + " |")
-    gravity = {side: mean_interval([u["mean"]["rollout_gravity_ratio"] for u in units[side].values()])
-               for side in SIDES}
-    lines += ["", "Gravity ratio along the rollout (1 = falls at g), mean over seeds with its 95% interval: "
-              + "; ".join(f"{SIDES[side]} {interval.text(2)}" for side, interval in gravity.items()) + "."]
-    return "\n".join(lines) + "\n"
