@@ -184,13 +184,13 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
     p.add_argument("file", type=Path, help="sweep TOML, e.g. sweeps/ablations/noise_std.toml")
     p.add_argument("--tier", default="smoke", choices=TIERS,
                    help="budget (sweeps/tiers.toml): smoke, seconds a run (a pipeline check); small, hours a run on 2 "
-                        "CPU cores; cpu, the campaign's budget, at most 30 minutes a run on 2 cores (issue #19); "
+                        "CPU cores; cpu, the campaign's budget, at most 30 minutes a run on 2 cores; "
                         "paper, the paper's 20M steps")
     p.add_argument("--dry-run", action="store_true", help="print the table of runs and their status; run nothing")
     p.add_argument("--time", action="store_true",
                    help="like --dry-run, and measure each run's training steps a second here on its own data (a few "
                         "steps of its own loop), with the training time its steps would take and the total still "
-                        "to train: how a tier's steps are chosen (issue #19)")
+                        "to train: how a tier's steps are chosen")
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
     p.add_argument("--parallel", type=int, default=1, metavar="N",

@@ -42,7 +42,8 @@ class ModelConfig:
     shared_processor: bool = False  # the paper's default is unshared GN blocks
     position_encoding: Literal["relative", "absolute"] = "relative"
     # What a node sums over its incoming edges (network.py): the edge MLP's outputs, as graph_nets'
-    # InteractionNetwork in the release does, or the residual-updated edges e + phi_e (gns-bench before #17).
+    # InteractionNetwork in the release does, or the residual-updated edges e + phi_e (gns-bench before it
+    # followed the release).
     aggregate: Literal["messages", "updated_edges"] = "messages"
     # Initial weights: Sonnet 1.x's, as the release built its MLPs (truncated normal of std 1/sqrt(fan_in),
     # zero biases; the type embedding Glorot-uniform, tf.get_variable's default), or PyTorch's defaults.

@@ -1,4 +1,4 @@
-"""The checks to run on a lent GPU (issue #22, item 5), from the repository root, in one command:
+"""The checks to run on a lent GPU, from the repository root, in one command:
 
     python -m gns_bench.bench.device        (or `nox -s device`, where nox is installed)
 

@@ -1,4 +1,4 @@
-"""What running several sweep runs at once costs (issue #22): the same runs one at a time and `parallel` at once
+"""What running several sweep runs at once costs: the same runs one at a time and `parallel` at once
 (`gns-bench sweep --parallel N`), each way into its own MLflow store and run folders, timed end to end.
 
 On a GPU the paper's graphs fill a fraction of the device, so N runs at once might take little more than one:

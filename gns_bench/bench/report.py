@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 BENCH_ROOT = Path("reports/bench")  # one folder per machine measured, and README.md comparing them
 
 # Targets of the speed issues, as ratios measured in one run. The training step's FLOP rate against the rate of
-# the GEMM that dominates it, [E,128] x [128,128], measured beside it (issue #22: fp32 >= 60%, bf16 >= 50%).
+# the GEMM that dominates it, [E,128] x [128,128], measured beside it (targets: fp32 >= 60%, bf16 >= 50%).
 TARGET_FRACTION_OF_SKINNY = {"fp32": 0.60, "bf16": 0.50}
 TARGET_SEARCH_SHARE = 0.15
 TARGET_SPEEDUP = 3.0
@@ -288,7 +288,7 @@ def _extra_checks(folder: Path) -> list[str]:
 
 def write_bench_index(root: Path) -> Path:
     """`root/README.md`: the targets of every machine benchmarked under `root` (each folder's bench.json),
-    side by side, each linking to its full tables. Machines differ in what is fastest (issue #22), so each
+    side by side, each linking to its full tables. Machines differ in what is fastest, so each
     keeps its own numbers."""
     lines = ["# gns-bench benchmark, by machine", "",
              "Each folder holds one `gns-bench bench` run on one kind of machine (tables, plots, `bench.json`); "

@@ -1,4 +1,4 @@
-"""What evaluating a run would cost here, measured before it is trained (issue #19: a campaign's budget counts
+"""What evaluating a run would cost here, measured before it is trained (a campaign's budget counts
 its evaluations, and a 3D domain's rollouts can cost as much as its training).
 
 `evaluation_cost` times, on the split the run evaluates: the network's prediction step on ground-truth

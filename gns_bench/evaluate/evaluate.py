@@ -176,7 +176,7 @@ def rollout_errors(result: RolloutResult, num_frames: int) -> dict[str, float]:
     - `baseline_cv_rollout_mse`: constant-velocity extrapolation scored the same way (kinematic particles on
       their true paths too), and `baseline_cv_same_steps_mse` over the steps the GNS rollout covered, the
       like-for-like baseline when a monitor stopped it;
-    - `rollout_mse_moving`: moving particles only, over every predicted step (gns-bench before issue #17).
+    - `rollout_mse_moving`: moving particles only, over every predicted step (gns-bench before it followed the release).
     NaN where the rollout predicted nothing."""
     k, truth, nan = result.predicted.shape[0], result.ground_truth, float("nan")
     window = result.initial_window.shape[0]

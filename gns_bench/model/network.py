@@ -11,7 +11,7 @@
 The node update sums the messages m_ij, as the release does: there each block is graph_nets'
 InteractionNetwork (whose node block reads the edge block's outputs) with the residuals added after it
 (graph_network.py, `_process_step`). `aggregate="updated_edges"` sums e'_ij = e_ij + m_ij instead, which is
-what gns-bench did before issue #17; checkpoints from then load with it (config.LEGACY_MODEL_VALUES).
+what gns-bench did before it followed the release; checkpoints from then load with it (config.LEGACY_MODEL_VALUES).
 `sonnet_init_` gives the release's initial weights (Sonnet 1.x `Linear` and `tf.get_variable`).
 
 The first layer of phi_e is applied as per-node projections gathered per edge,

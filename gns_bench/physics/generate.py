@@ -170,7 +170,7 @@ def time_generation(domain: str, tier: str, budget_seconds: float = 60.0, seed: 
                     max_trajectories: int = 12) -> GenerationTiming:
     """Simulate the tier's first training trajectories for about `budget_seconds` (at least three, at most
     `max_trajectories`), writing nothing, and estimate what the whole dataset takes on this machine: how the
-    cpu tier's sizes were chosen (issue #19, at most 15 minutes a domain on 2 cores). Early trajectories
+    cpu tier's sizes were chosen (at most 15 minutes a domain on 2 cores). Early trajectories
     stand for the rest; GOOP's full small set took 15% longer than this estimate on an AMD EPYC."""
     spec = load_domain_spec(domain).for_tier(tier)
     tier_spec = spec.tier(tier)

@@ -190,7 +190,7 @@ def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow],
 
 @dataclass(frozen=True)
 class Cost:
-    """One model's cost on one domain beside its error (issue #21: the comparison's time against error)."""
+    """One model's cost on one domain beside its error (the comparison's time against error, Sec. 5.5)."""
 
     domain: str
     model: str  # "GNS", "CConv", "DPI-Net"
@@ -236,7 +236,7 @@ MEASURED = "measured_cost"  # the summary extra that keeps `measure_costs`' resu
 
 def measure_costs(tier: str, data_root: Path, *, steps: int = 40,
                   echo: Callable[[str], None] = print) -> dict[str, Any]:
-    """Every comparison's models timed one after another on this machine, on the tier's data (issue #21: cost
+    """Every comparison's models timed one after another on this machine, on the tier's data (cost
     beside error, like for like). Per comparison domain, the GNS (the domain sweep's first run) and each
     baseline (its sweep's first run: its training noise does not change a step's cost): `steps` steps of the
     run's own training loop, with the precision and compile settings the run would choose here

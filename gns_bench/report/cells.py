@@ -295,7 +295,7 @@ def budget_statement(rows: list[RunRow], tier: str = "") -> str:
                        f"marked `{SHARED_CORES}` in the tables.")
     legacy = [r for r in done if not math.isfinite(r.metric("rollout_mse_moving"))]
     if legacy:
-        caveats.append(f"**Older runs.** {_which(legacy, done)} the evaluation predates issue #17"
+        caveats.append(f"**Older runs.** {_which(legacy, done)} the evaluation predates the release's definitions"
                        f"{_named(legacy, done)}. Their MSEs leave kinematic particles out "
                        "and their rollout MSE covers one step more (it reads higher by up to N_all / N_moving on "
                        "domains with obstacles), and their model summed the updated edges "

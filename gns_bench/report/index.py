@@ -386,7 +386,7 @@ def _training_key(run) -> str:
 def _to_go(remaining: int, trained: list[RunRow], retrain: int = 0) -> str:
     """The models still to train and the time they would take at the mean training and evaluation time of those
     trained so far: an extrapolation, since later sweeps' domains and models differ (each was budgeted GOOP's
-    training time, issue #19); stress tests' own rollouts are not counted. Where the runs recorded more than
+    training time); stress tests' own rollouts are not counted. Where the runs recorded more than
     one CPU generation, also at each generation's own mean: runs took about twice as long on family 25 as on
     family 26 (reports/NOTES.md), so one mean over both hides what the next machine costs. `retrain`: models
     already trained that a stress sweep still to run trains again if their checkpoints are gone (a run summary
@@ -418,7 +418,7 @@ def _to_go(remaining: int, trained: list[RunRow], retrain: int = 0) -> str:
 
 def campaign_section(reports_root: Path, campaign_file: Path = CAMPAIGNS_DIR / "paper.toml",
                      sweeps_dir: Path = SWEEPS_DIR, tiers: tuple[str, ...] = CAMPAIGN_TIERS) -> list[str]:
-    """What the campaign (issue #19) has trained at each tier and what that cost: models trained against those
+    """What the campaign has trained at each tier and what that cost: models trained against those
     planned (each trained once however many sweeps share it), training and evaluation time summed over them,
     what is left at the mean so far (`_to_go`), and the machines that ran them."""
     campaign = load_campaign(campaign_file, sweeps_dir)

@@ -213,7 +213,7 @@ def scale(simulator: LearnedSimulator, scenes: dict[int, tuple[list[Trajectory],
             result = _run(simulator, traj, length, device, bounds=bounds)
             seconds.append((time.perf_counter() - started) / max(result.predicted.shape[0], 1))
             errors.append(per_step_mse(result, length))
-            # Like for like (issue #20): constant velocity over the steps this GNS rollout covered, no more.
+            # Like for like: constant velocity over the steps this GNS rollout covered, no more.
             k = int(np.sum(np.isfinite(errors[-1])))
             cv = metrics.constant_velocity_rollout(result.initial_window, k)
             gns.append(float(np.nanmean(errors[-1])) if k else np.nan)

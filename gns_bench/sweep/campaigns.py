@@ -1,5 +1,5 @@
 """Campaign files: `sweeps/campaigns/<name>.toml` lists sweep files (relative to `sweeps/`) in the order they
-should fill in (issue #19). Read here, by the campaign runner (`gns_bench/campaign.py`) and by the front page,
+should fill in. Read here, by the campaign runner (`gns_bench/campaign.py`) and by the front page,
 which states what the campaign has cost so far (`report/index.py`)."""
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ def submit(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], folder: 
 def core_slices(cores: list[int], parallel: int) -> list[list[int]]:
     """Divide `cores` between `parallel` jobs: disjoint slices, as even as they go (5 cores, 2 jobs: 3 and 2).
     With fewer cores than jobs each job gets one core, taken in turn, and jobs share cores: say so to the user
-    (two 2-thread torch jobs on 2 cores made a training step about 10x slower, issue #22)."""
+    (two 2-thread torch jobs on 2 cores made a training step about 10x slower)."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 job, got {parallel}")
     if not cores:

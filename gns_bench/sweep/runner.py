@@ -49,7 +49,7 @@ class RunOutcome:
 
 
 # 1: every config field in the key (before 2026-11-22). 2: only fields that differ from Config()'s.
-# 3: configs resolved against their dataset before keying (issue #18), and the release's defaults (#17).
+# 3: configs resolved against their dataset before keying, and the release's defaults.
 KEY_VERSION = 3
 KEYED_SECTIONS = ("model", "train", "eval", "stress")  # the config's sections at KEY_VERSION 3: always in the key
 _MISSING = object()
@@ -355,7 +355,7 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
     the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
-    GPU, sharing the device: issue #22). `after_run(outcome, runs_left)`: called as each run the local launcher
+    GPU, sharing the device). `after_run(outcome, runs_left)`: called as each run the local launcher
     trains one at a time ends, with how many of this call's runs are still to train."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")

@@ -1,4 +1,4 @@
-"""Run summaries: the compact record of a sweep's runs committed beside its report (issue #19, item 5).
+"""Run summaries: the compact record of a sweep's runs committed beside its report.
 
 `reports/<sweep>/<tier>/runs.json` holds each run's params, final metrics, tags (its `run_key`, dataset hash,
 hardware, timing) and training curves, and `extras`: what else its report showed that MLflow's artifacts held.

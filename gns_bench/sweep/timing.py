@@ -2,7 +2,7 @@
 training time its steps would take, and the time its evaluation would take (`evaluate/cost.py`)
 (`gns-bench sweep FILE --tier T --time`).
 
-Tiers define runs by steps (issue #19); this is how those steps are chosen from a measured rate, and how a
+Tiers define runs by steps; this is how those steps are chosen from a measured rate, and how a
 campaign is checked against its budget before it starts. Runs that differ only in their seed or in settings
 that leave a step's cost unchanged are not told apart: runs with the same model and batch on the same data are
 measured once, and their evaluations once per evaluation config and evaluation data.

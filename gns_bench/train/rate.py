@@ -1,6 +1,6 @@
 """How fast a run would train here: steps a second of its own config on its own data, measured.
 
-A tier defines runs by steps, not seconds, so that results do not depend on the machine's speed (issue #19);
+A tier defines runs by steps, not seconds, so that results do not depend on the machine's speed;
 the steps are chosen from a measured step rate. `measure_step_rate` runs the one training loop (`train`) for a
 few steps on the run's dataset, in a scratch directory, with the precision and compile setting the run itself
 would use (`auto` resolves as it will in the run, from the same probe and cache), and times the steps after a
