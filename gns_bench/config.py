@@ -110,6 +110,11 @@ class TrainConfig:
     # torch.compile the network (dynamic shapes: one compilation serves every graph size, ~1 min at start).
     # It paid in bf16 on an Intel Xeon with AMX and cost on an AMD EPYC; "auto" measures it on the machine.
     compile: bool | Literal["auto"] = False
+    # How the C library's allocator treats the memory a step frees. "keep": glibc's malloc keeps it mapped
+    # (devices.keep_memory_mapped: 1.9x faster fp32 training on an Intel Xeon, where the default hands large
+    # blocks back to the kernel every step); "system": the library's defaults, or GLIBC_TUNABLES as set.
+    # "auto": keep, unless GLIBC_TUNABLES is set (the user chose). The run records what it used.
+    allocator: Literal["auto", "keep", "system"] = "auto"
     # Stop at the first step after this much training time (seconds, over resumes; periodic evaluation not
     # counted). For budget studies, whose runs get equal time; tiers define runs by steps, so results do not
     # depend on the machine's speed.

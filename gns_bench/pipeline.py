@@ -198,6 +198,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
                          "train/curve_eval_seconds": result.eval_seconds})
         if result.oversubscribed:  # another job competed for the cores: these timings are not comparable
             run.set_tags({"train/oversubscribed": result.oversubscribed})
+        if result.allocator:
+            run.set_tags({"train/allocator": result.allocator})
         if result.speed is not None:  # what "auto" chose, or the config's own settings
             run.set_tags({"train/precision_used": result.speed.precision,
                           "train/compile_used": str(result.speed.compile),

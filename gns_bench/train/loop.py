@@ -27,7 +27,7 @@ from gns_bench import simulators as registry
 from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
-from gns_bench.devices import load_average, resolve_device, set_threads, usable_cores
+from gns_bench.devices import apply_allocator, load_average, resolve_device, set_threads, usable_cores
 from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
@@ -51,6 +51,7 @@ class TrainResult:
     eval_seconds: float = 0.0  # spent by this call in periodic evaluation (`on_eval`), not in wall_time_s
     speed: autotune.SpeedSettings | None = None  # the precision and compile setting it trained with
     oversubscribed: str = ""  # when the machine's load exceeded its cores while this call trained (timings off)
+    allocator: str = ""  # how the allocator treated freed memory (`train.allocator`, devices.apply_allocator)
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
@@ -250,6 +251,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     """
     tc = config.train
     threads = set_threads(tc.num_threads)
+    allocator = apply_allocator(tc.allocator)
     device = resolve_device(tc.device)
     group = distributed.from_environment(device)
     progress = progress and group.is_main
@@ -370,4 +372,5 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     group.close()
     elapsed = clock.total - earlier_wall_time
     rate = (step - start_step) / elapsed if elapsed > 0 and step > start_step else 0.0
-    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused, speed, load.report())
+    return TrainResult(checkpoint_path, losses, start_step, step, rate, clock.total, paused, speed, load.report(),
+                       allocator)
