@@ -59,7 +59,7 @@ def test_auto_leaves_an_allocator_the_user_set_alone(monkeypatch: pytest.MonkeyP
 def test_the_bench_row_counts_fewer_faults_with_memory_kept_mapped() -> None:
     from gns_bench.bench.allocator import markdown, measure_allocator
 
-    rows = measure_allocator(particles=300, neighbours=15.0, precisions=("fp32",), steps=2)
+    rows = measure_allocator(particles=300, neighbours=15.0, precisions=("fp32",), steps=6)
     by = {r["setting"]: r for r in rows}
     assert by["keep"]["allocator"].startswith("glibc malloc kept mapped") and by["system"]["allocator"] == "system"
     assert by["keep"]["minor_faults_per_step"] < 0.5 * by["system"]["minor_faults_per_step"]

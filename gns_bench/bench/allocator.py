@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 SETTINGS = ("system", "keep")
+WARMUP = 5
 
 
 def allocator_point(setting: str, particles: int, neighbours: float, precision: str, steps: int) -> dict[str, Any]:
@@ -37,7 +38,7 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
     model = build_model(ModelConfig(), scene, torch.device("cpu"))
     edges = model.build_graph(scene.window[:, -1])
     optimiser = adam(model.parameters(), 1e-4)
-    for _ in range(2):  # warm-up: the heap grows to the step's size
+    for _ in range(WARMUP):  # warm-up: the heap grows to the step's size (about 4 steps with memory kept)
         synthetic_train_step(model, optimiser, scene.window, scene.particle_type, edges, precision)
     before, started = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     for _ in range(steps):
@@ -51,7 +52,7 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
 
 
 def measure_allocator(particles: int = 3000, neighbours: float = 28.0, precisions: tuple[str, ...] = ("fp32", "bf16"),
-                      steps: int = 5) -> list[dict[str, Any]]:
+                      steps: int = 10) -> list[dict[str, Any]]:
     """Both settings, each precision, one fresh process each (GLIBC_TUNABLES cleared so "system" is glibc's own)."""
     rows = []
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"} | {"PYTHONWARNINGS": "ignore"}
@@ -68,8 +69,8 @@ def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
     """The rows side by side, each setting's step against the system default's of the same precision."""
     lines = [f"Training step of the paper's model (M = 10, latent 128) on {rows[0]['particles']:,} particles, "
              f"{rows[0]['edges']:,} edges (the density of a batch of two 1,500-particle frames), "
-             f"{rows[0]['threads']} threads, {hardware}; {rows[0]['steps']} steps after 2 of warm-up, each setting in "
-             "a fresh process.", "",
+             f"{rows[0]['threads']} threads, {hardware}; {rows[0]['steps']} steps after {WARMUP} of warm-up, each "
+             "setting in a fresh process.", "",
              "| precision | allocator | s / step | system s / step | minor page faults / step | step vs system |",
              "|---|---|---|---|---|---|"]
     default = {r["precision"]: r for r in rows if r["setting"] == "system"}
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="the allocator setting's effect on a training step")
     parser.add_argument("--out", type=Path, default=None, help="write allocator.md and allocator.json here")
     parser.add_argument("--particles", type=int, default=3000)
-    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
     args = parser.parse_args(argv)
     rows = measure_allocator(args.particles, steps=args.steps)
     text = markdown(rows, hardware_description("cpu"))
