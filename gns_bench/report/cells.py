@@ -167,7 +167,10 @@ METRIC_DEFINITIONS = [
     "about 1 wide). The release's definition (learning_to_simulate/train.py), which the paper's Table 1 reports.",
     "**rollout MSE**: squared position error of a rollout fed its own predictions, averaged over the release's "
     "`sequence_length - 6` steps, every particle (kinematic ones follow the data and add 0) and dimension; mean "
-    "over test trajectories. When a health monitor stopped a rollout, over the steps before the stop.",
+    "over test trajectories. When a health monitor stopped a rollout, over the steps before the stop: then the "
+    "table says over how many, and sets no ratio to the paper's whole-rollout figure beside it.",
+    "**MSE, rollout steps 1-10**: the rollout MSE over its first 10 steps, which every rollout reaches: the same "
+    "steps for every run and domain (LagrangeBench's habit of fixed horizons).",
     "**GNS / constant velocity**: rollout MSE divided by that of extrapolating every particle at its last "
     "velocity over the same trajectories and steps, printed as ratio (GNS / baseline); below 1x the model beats "
     "the trivial baseline.",
