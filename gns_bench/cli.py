@@ -318,7 +318,8 @@ def cmd_report(args: argparse.Namespace) -> None:
     from gns_bench.report import write_all_reports, write_report
 
     if args.measure_cost:
-        from gns_bench.report.baselines import measure_costs, write_baselines_report
+        from gns_bench.bench.costs import measure_costs
+        from gns_bench.report.baselines import write_baselines_report
 
         if args.sweep != "baselines":
             raise SystemExit(f"gns-bench report: --measure-cost times the baselines report's models; got sweep "

@@ -105,7 +105,7 @@ class TrainConfig:
     device: str = "auto"  # "auto" picks CUDA when present
     num_threads: int | None = None  # torch CPU threads; None keeps torch's default
     # bf16: autocast the network (features and loss stay fp32). "auto": whichever trains fastest on this
-    # machine, measured by a short probe (gns_bench/train/autotune.py); the run records what it used.
+    # machine, measured by a short probe (gns_bench/autotune.py); the run records what it used.
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
     # torch.compile the network (dynamic shapes: one compilation serves every graph size, ~1 min at start).
     # It paid in bf16 on an Intel Xeon with AMX and cost on an AMD EPYC; "auto" measures it on the machine.

@@ -266,7 +266,7 @@ def _stress_and_log(run: tracking.Run, simulator: Any, config: Config, dataset_d
                     device: str, progress: bool) -> dict[str, float]:
     """Run `config.stress` and log it into `run`: metrics `stress/<test>/...` and
     `generalisation/<variant>/...`, each test's curves (JSON) and figure, monitors that tripped as tags."""
-    from gns_bench.stress.plots import plot_stress
+    from gns_bench.evaluate.stress_plots import plot_stress
     from gns_bench.stress.run import run_stress
 
     outcome = run_stress(simulator, config, dataset_dir, device=device, progress=progress)

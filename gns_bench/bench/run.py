@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from gns_bench import tracking
+from gns_bench import autotune, tracking
 from gns_bench.bench.baseline import concatenated_baseline
 from gns_bench.bench.measure import (
     build_model,
@@ -30,7 +30,6 @@ from gns_bench.bench.measure import (
 )
 from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.devices import resolve_device
-from gns_bench.train import autotune
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),

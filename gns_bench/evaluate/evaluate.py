@@ -287,7 +287,7 @@ def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], c
         return compiled_for_inference(simulator), ""
     if config.compile is False or not trajectories or getattr(simulator, "network", None) is None:
         return simulator, ("" if config.compile is False else "eager (nothing to compile)")
-    from gns_bench.train import autotune
+    from gns_bench import autotune
 
     first, w = trajectories[0], simulator.input_sequence_length
     window = torch.from_numpy(first.position[:w]).transpose(0, 1).contiguous().to(device)

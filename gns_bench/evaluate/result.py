@@ -3,7 +3,7 @@ so readers of runs (reports) need neither torch nor the model."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,3 +50,14 @@ class RolloutResult:
         w = self.initial_window.shape[0]
         frames = np.arange(w, w + k)[:, None]
         return moving[None] & (self.birth_step[None] <= frames - 1)
+
+
+# What a stress test returns (gns_bench/stress): plain data (no model, no torch), so the stability report and the
+# figures read results back from a run's `stress/<test>.json` without loading a simulator or the experiments.
+@dataclass
+class StressResult:
+    name: str
+    metrics: dict[str, float] = field(default_factory=dict)
+    curves: dict[str, list[float]] = field(default_factory=dict)  # per rollout step, NaN where not reached
+    trips: list[str] = field(default_factory=list)  # "<scene> trajectory i: <monitor> at step k: ..."
+    notes: list[str] = field(default_factory=list)

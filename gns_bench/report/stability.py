@@ -23,12 +23,12 @@ from gns_bench import tracking
 from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.plots import flag_marks
+from gns_bench.evaluate.result import StressResult
+from gns_bench.evaluate.stress_plots import plot_stress
 from gns_bench.report import figures
 from gns_bench.report.cells import budget, budget_statement, fmt
 from gns_bench.report.collect import RunRow, collect, load_rollouts, stress_sweeps
 from gns_bench.report.figures import RIGIDITY_WORDS
-from gns_bench.stress.plots import plot_stress
-from gns_bench.stress.result import StressResult
 from gns_bench.sweep.spec import SweepSpec
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras
 

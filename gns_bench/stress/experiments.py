@@ -21,9 +21,9 @@ import numpy as np
 from gns_bench.data.format import RIGID_PARTICLE_TYPE, Trajectory
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate.evaluate import health_monitors, one_step_mse
+from gns_bench.evaluate.result import StressResult
 from gns_bench.evaluate.rollout import RolloutResult, rollout
 from gns_bench.model.simulator import LearnedSimulator
-from gns_bench.stress.result import StressResult
 
 ONE_STEP_WINDOWS = 50  # windows per trajectory for the one-step error of each precision
 

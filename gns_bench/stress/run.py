@@ -24,10 +24,10 @@ from gns_bench.config import Config
 from gns_bench.data.format import Metadata, Trajectory, load_split, read_metadata
 from gns_bench.datasets import ensure_dataset
 from gns_bench.evaluate.evaluate import Evaluation, evaluate
+from gns_bench.evaluate.result import StressResult
 from gns_bench.model.simulator import LearnedSimulator
 from gns_bench.physics.spec import list_variants, load_domain_spec
 from gns_bench.stress import experiments
-from gns_bench.stress.result import StressResult
 
 
 @dataclass

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from gns_bench import autotune
 from gns_bench import simulators as registry
 from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
@@ -32,7 +33,7 @@ from gns_bench.model.features import acceleration_from_next_position
 from gns_bench.model.noise import noisy_training_pair, random_walk_position_noise
 from gns_bench.model.precision import autocast
 from gns_bench.model.simulator import LearnedSimulator, Simulator, kinematic_mask
-from gns_bench.train import autotune, distributed
+from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 
 # Train settings that may change between an interrupted run and its resumption.

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gns_bench.bench import costs as costs_module
 from gns_bench.evaluate.result import RolloutResult
 from gns_bench.report import baselines, report
 from gns_bench.report.collect import RunRow
@@ -38,6 +39,8 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
         assert all(o.status == "FINISHED" for o in outcomes), [o.error for o in outcomes]
     monkeypatch.setattr(baselines, "baseline_sweeps", lambda: [baseline])
     monkeypatch.setattr(baselines, "domain_sweeps", lambda: [domain])
+    monkeypatch.setattr(costs_module, "baseline_sweeps", lambda: [baseline])
+    monkeypatch.setattr(costs_module, "domain_sweeps", lambda: [domain])
     text = baselines.write_baselines_report("smoke", tmp_path / "reports" / "baselines" / "smoke").read_text()
     (row,) = [line for line in text.splitlines() if line.startswith("| tiny (cconv) |")]
     cells = [c.strip() for c in row.strip("|").split("|")]
@@ -83,7 +86,7 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert baselines.HEADER in page and baselines.VERDICT_RULE not in page  # smoke: no verdict drawn
     # cost measured side by side: both models timed here on the tier's data, kept in the report's summary
     monkeypatch.setattr(report, "domain_sweeps", lambda: [domain])
-    measured = baselines.measure_costs("smoke", tmp_path / "data", steps=3, echo=lambda line: None)
+    measured = costs_module.measure_costs("smoke", tmp_path / "data", steps=3, echo=lambda line: None)
     timed = {r["model"]: r for r in measured["rows"]}
     assert set(timed) == {"GNS", "CConv"} and measured["missing"] == []
     assert all(r["domain"] == "tiny" and r["train_seconds_per_step"] > 0 and r["rollout_seconds_per_step"] > 0
@@ -96,7 +99,7 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert measured["hardware"] in text
     again = baselines.write_baselines_report("smoke", out).read_text()  # not measured again: the table is kept
     assert cconv_row in again.splitlines()
-    nothing = baselines.measure_costs("smoke", tmp_path / "no-data", steps=3, echo=lambda line: None)
+    nothing = costs_module.measure_costs("smoke", tmp_path / "no-data", steps=3, echo=lambda line: None)
     assert nothing["rows"] == [] and len(nothing["missing"]) == 1
     assert "no dataset tiny-smoke-s0" in nothing["missing"][0]
     assert "### Measured side by side" not in "\n".join(baselines.measured_section(nothing))
@@ -148,6 +151,7 @@ def test_the_failure_the_paper_shows_is_drawn_model_beside_model(tmp_path: Path,
     cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-goop.toml")
     rollouts = {"gns run": [_drift(30, 0.006)], "cconv run": [_drift(30, 0.02, stopped_at=9)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "chosen_run", lambda sweep, rows: (rows[0] if rows else None, ""))
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row, []))
     collected = [(cconv, ["cconv run"], ["gns run"])]
     lines, drawn = baselines.failure_section(collected, tmp_path, previous=None)
@@ -185,6 +189,7 @@ def test_a_model_whose_rollouts_are_gone_is_named_not_silently_left_out(tmp_path
     cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
     rollouts = {"cconv run": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "chosen_run", lambda sweep, rows: (rows[0] if rows else None, ""))
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(getattr(row, "run_id", None), []))
     lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path, previous=None)
     curves = drawn["boxbath"].pop("rigidity_curves")
@@ -219,6 +224,7 @@ def test_a_stress_sweeps_retraining_of_the_same_model_stands_in_for_gone_gns_rol
     gns, stand_in, longer = row(domain_run, "gnsgone", 0.0217), row(same, "again", 0.03), row(other, "shake", 0.01)
     rollouts = {"cconv run": [_swelling_cube(20)], "again": [_swelling_cube(20)], "shake": [_swelling_cube(20)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "chosen_run", lambda sweep, rows: (rows[0] if rows else None, ""))
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row.run_id, []))
     lines, drawn = baselines.failure_section([(cconv, [_Row("cconv run")], [gns])], tmp_path, previous=None,
                                              stand_ins={"boxbath": [longer, stand_in]})
@@ -244,6 +250,7 @@ def test_a_drift_curve_kept_in_the_summary_is_redrawn_when_its_rollouts_are_gone
     cconv = load_sweep(SWEEPS_DIR / "baselines" / "cconv-boxbath.toml")
     rollouts = {"gns run": [_swelling_cube(20)], "cconv run": [_swelling_cube(30)]}
     monkeypatch.setattr(baselines, "best_run", lambda rows: rows[0] if rows else None)
+    monkeypatch.setattr(baselines, "chosen_run", lambda sweep, rows: (rows[0] if rows else None, ""))
     monkeypatch.setattr(baselines, "_rollouts", lambda row, workdir: rollouts.get(row.run_id, []))
     _, first = baselines.failure_section([(cconv, [_Row("cconv run")], [_Row("gns run")])], tmp_path, previous=None)
     assert first["boxbath"]["rigidity"] == ["GNS", "CConv"]

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from gns_bench import autotune
 from gns_bench.config import load_config
-from gns_bench.train import autotune
 from gns_bench.train.loop import train
 
 QUICK = ["model.message_passing_steps=1", "model.latent_size=16", "model.mlp_hidden_size=16", "train.log_every=5"]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from gns_bench.evaluate.plots import GNS_LINE, MSE_UNIT, POSITION_UNIT, STEP_LABEL, TRUTH_LINE, config_colours
-from gns_bench.stress.result import StressResult
+from gns_bench.evaluate.result import StressResult
 
 # curve-name prefix -> (panel title, y label with its unit, log scale)
 PANELS = {
