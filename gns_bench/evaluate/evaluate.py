@@ -16,6 +16,7 @@ from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.data.windows import make_batch
 from gns_bench.evaluate import diagnostics, metrics
+from gns_bench.evaluate import registry as metric_registry
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
 from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
 from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
@@ -251,6 +252,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         }
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
             row["context"] = float(traj.step_context[0, 0])
+        row.update(metric_registry.compute_all(result))  # metrics of one's own (evaluate/registry.py)
         horizons = metrics.mse_at_horizons(result.predicted, result.ground_truth[:k], result.scored_mask(k))
         row.update({f"mse_h{h}": value for h, value in horizons.items()})
         distributional, method = distributional_metrics(result, config, simulator.radius, device)

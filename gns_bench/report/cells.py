@@ -316,4 +316,6 @@ def _span(values: list[int]) -> str:
 
 
 def definitions_section() -> list[str]:
-    return ["## Metrics", "", *(f"- {line}" for line in METRIC_DEFINITIONS), ""]
+    from gns_bench.evaluate import registry
+
+    return ["## Metrics", "", *(f"- {line}" for line in [*METRIC_DEFINITIONS, *registry.definitions()]), ""]

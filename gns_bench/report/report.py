@@ -15,6 +15,7 @@ from pathlib import Path
 from gns_bench import simulators
 from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
+from gns_bench.evaluate import registry as metric_registry
 from gns_bench.evaluate.plots import flag_marks
 from gns_bench.report import baselines, figures
 from gns_bench.report.baselines import write_baselines_report
@@ -306,12 +307,13 @@ def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
 
 
 def runs_table(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
-    header = ["run", *[a.split(".")[-1] for a in sweep.axes], "seed", "status", "MLflow run id", *METRICS]
+    shown = [*METRICS, *(m.name for m in metric_registry.registered())]  # the registered ones after the paper's
+    header = ["run", *[a.split(".")[-1] for a in sweep.axes], "seed", "status", "MLflow run id", *shown]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
         cells = [r.planned.name, *[axis_value_label(r.planned.axes[a]) for a in sweep.axes], str(r.planned.seed),
                  "ok" if r.ok else f"**{r.status}**", run_id_cell(r),
-                 *(fmt(r.metric(m)) for m in METRICS)]
+                 *(fmt(r.metric(m)) for m in shown)]
         lines.append("| " + " | ".join(cells) + " |")
     settings = sorted({distribution_settings(r) for r in rows if r.ok})
     lines += ["", "OT: exact EMD (W2^2: squared Euclidean cost, uniform weights, POT) between the moving particles' "
