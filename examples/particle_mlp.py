@@ -76,7 +76,7 @@ def build(config, metadata) -> ParticleMLP:
 
 
 def loss(simulator: ParticleMLP, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
-         precision="fp32") -> torch.Tensor:
+         precision="fp32", step=0) -> torch.Tensor:
     """The paper's one-step loss (Sec. 4.3): noisy inputs, the target shifted by the velocity noise, squared error
     of normalised accelerations over the moving particles."""
     window, target = noisy_training_pair(batch.window, batch.target, position_noise, config.train.position_correction)

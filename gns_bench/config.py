@@ -97,6 +97,15 @@ class TrainConfig:
     # Training windows: uniform over every window of every trajectory (the release), or with this share of each
     # batch drawn from the first `start_windows` windows of a trajectory, where rollouts start and blocks are
     # in the air nearly at rest (data/windows.py `WindowSampler` says why that matters).
+    # Linear warm-up of the learning rate over the first steps (0: none, as the paper; LagrangeBench warms up).
+    learning_rate_warmup_steps: int = 0
+    # Pushforward (Brandstetter et al. 2022, as LagrangeBench trains): from step `pushforward_start`, a share
+    # `pushforward_share` of the steps first rolls the model forward 1..`pushforward_steps` steps (drawn
+    # uniformly) without gradient from the noisy window, then trains the next step from the window its own
+    # predictions made, against the true position: the model learns to correct its own drift. 0 steps: off.
+    pushforward_steps: int = 0
+    pushforward_start: int = 0
+    pushforward_share: float = 0.5
     start_window_share: float = 0.0
     start_windows: int = 50
     seed: int = 0
@@ -141,6 +150,10 @@ class TrainConfig:
         _require(self.log_every >= 1, "train.log_every", "must be >= 1")
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")
         _require(self.max_wall_seconds is None or self.max_wall_seconds > 0, "train.max_wall_seconds", "must be > 0")
+        _require(self.learning_rate_warmup_steps >= 0, "train.learning_rate_warmup_steps", "must be >= 0")
+        _require(self.pushforward_steps >= 0, "train.pushforward_steps", "must be >= 0 (0 turns it off)")
+        _require(self.pushforward_start >= 0, "train.pushforward_start", "must be >= 0")
+        _require(0.0 <= self.pushforward_share <= 1.0, "train.pushforward_share", "must be within [0, 1]")
         _require(self.eval_every >= 0, "train.eval_every", "must be >= 0 (0 turns it off)")
         _require(self.eval_trajectories >= 1, "train.eval_trajectories", "must be >= 1")
         _require(self.eval_rollout_steps >= 1, "train.eval_rollout_steps", "must be >= 1")

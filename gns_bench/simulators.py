@@ -52,8 +52,9 @@ class SimulatorSpec:
     """How gns-bench builds, trains and names one kind of simulator.
 
     build(config, metadata): a fresh module for that dataset (the config already resolved against it).
-    loss(simulator, batch, position_noise, config, *, model, num_moving, world_size, precision): the training
-      loss on a `GraphBatch` (`position_noise`: the random-walk noise drawn for it, Sec. 4.3).
+    loss(simulator, batch, position_noise, config, *, model, num_moving, world_size, precision, step): the
+      training loss on a `GraphBatch` at training step `step` (`position_noise`: the random-walk noise drawn for
+      it, Sec. 4.3).
     schedule(config): the learning rate by step. adam_eps(config): Adam's epsilon.
     unrolled_steps(config): frames after each training window the loss needs (1: one-step training).
     data_parallel: whether torchrun's data parallelism may train it (its loss scales by `world_size`)."""
@@ -145,11 +146,11 @@ def _build_gns(config: Config, metadata: Metadata):
 
 
 def _gns_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
-              precision="fp32"):
-    from gns_bench.train.loop import training_loss
+              precision="fp32", step=0):
+    from gns_bench.train.loop import pushforward_unroll, training_loss
 
     return training_loss(simulator, batch, position_noise, config.train.position_correction, model, num_moving,
-                         world_size, precision)
+                         world_size, precision, pushforward_unroll(config.train, step))
 
 
 def _build_cconv(config: Config, metadata: Metadata):
@@ -159,7 +160,7 @@ def _build_cconv(config: Config, metadata: Metadata):
 
 
 def _cconv_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
-                precision="fp32"):
+                precision="fp32", step=0):
     """CConv's authors' unrolled loss (they train without noise: train.noise_std = 0 in its sweeps)."""
     import torch
 
@@ -183,13 +184,14 @@ def _build_dpi(config: Config, metadata: Metadata):
 
 
 def _dpi_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
-              precision="fp32"):
+              precision="fp32", step=0):
     """DPI-Net's loss on normalised next velocities; noise as the GNS's (their recipe: train.noise_std = 0)."""
     return simulator.training_loss(batch.window, batch.target, batch.particle_type, batch.batch, position_noise,
                                    precision=precision)
 
 
-GNS = register(SimulatorSpec("gns", "GNS", _build_gns, _gns_loss, data_parallel=True))
+GNS = register(SimulatorSpec("gns", "GNS", _build_gns, _gns_loss, data_parallel=True,
+                             unrolled_steps=lambda config: 1 + config.train.pushforward_steps))
 CCONV = register(SimulatorSpec("cconv", "CConv", _build_cconv, _cconv_loss, schedule=_cconv_schedule,
                                adam_eps=lambda config: config.cconv.adam_eps,
                                unrolled_steps=lambda config: config.cconv.unrolled_steps))

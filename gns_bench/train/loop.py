@@ -56,8 +56,22 @@ class TrainResult:
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
+    """The paper's exponential decay (App. B.3), after a linear warm-up where one is set."""
     decay = 0.1 ** (step / config.learning_rate_decay_steps)
-    return (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
+    rate = (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
+    if step < config.learning_rate_warmup_steps:
+        rate *= (step + 1) / config.learning_rate_warmup_steps
+    return rate
+
+
+def pushforward_unroll(config: TrainConfig, step: int) -> int:
+    """How many steps the model rolls itself forward before training step `step` (`train.pushforward_*`): 0
+    before `pushforward_start` and on the other steps, else 1..`pushforward_steps`, drawn from the seed and the
+    step alone (a resumed run draws the same)."""
+    if config.pushforward_steps <= 0 or step < config.pushforward_start:
+        return 0
+    rng = np.random.default_rng([config.seed, step, 0x9F])
+    return int(rng.integers(1, config.pushforward_steps + 1)) if rng.random() < config.pushforward_share else 0
 
 
 def schedule(config: Config) -> Callable[[int], float]:
@@ -82,17 +96,34 @@ def unrolled_steps(config: Config) -> int:
 
 def batch_loss(simulator: Simulator, batch: GraphBatch, position_noise: torch.Tensor, config: Config,
                model: torch.nn.Module | None = None, num_moving: int | None = None, world_size: int = 1,
-               precision: str = "fp32") -> torch.Tensor:
+               precision: str = "fp32", step: int = 0) -> torch.Tensor:
     """The architecture's own training loss on a batch (its `SimulatorSpec.loss`): the GNS's noisy one-step loss
     (`training_loss`), CConv's unrolled one, DPI-Net's on normalised velocities, or a registered model's."""
     spec = registry.get(config.model.architecture)
     return spec.loss(simulator, batch, position_noise, config, model=model, num_moving=num_moving,
-                     world_size=world_size, precision=precision)
+                     world_size=world_size, precision=precision, step=step)
+
+
+@torch.no_grad()
+def pushed_forward(simulator: LearnedSimulator, window: torch.Tensor, batch: GraphBatch, unroll: int,
+                   precision: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (noisy) window rolled forward `unroll` steps by the model, without gradient (kinematic particles on
+    their true paths), and the true position one step after it: `batch.future` holds the frames after the
+    window (the sampler draws 1 + `train.pushforward_steps` of them)."""
+    future = batch.future if batch.future is not None else batch.target[:, None]
+    kinematic = kinematic_mask(batch.particle_type)[:, None]
+    for k in range(unroll):
+        predicted = simulator.predict_next_position(window, batch.particle_type, batch.batch, batch.context,
+                                                    precision=precision)
+        predicted = torch.where(kinematic, future[:, k], predicted.to(window.dtype))
+        window = torch.cat([window[:, 1:], predicted[:, None]], dim=1)
+    return window, future[:, unroll]
 
 
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
                   position_correction: float, model: torch.nn.Module | None = None,
-                  num_moving: int | None = None, world_size: int = 1, precision: str = "fp32") -> torch.Tensor:
+                  num_moving: int | None = None, world_size: int = 1, precision: str = "fp32",
+                  unroll: int = 0) -> torch.Tensor:
     """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles.
 
     `position_noise` is `step_inputs`' (kinematic rows zero: they follow the data, Sec. 4.3).
@@ -103,6 +134,8 @@ def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise
     """
     moving = ~kinematic_mask(batch.particle_type)
     window, target_next = noisy_training_pair(batch.window, batch.target, position_noise, position_correction)
+    if unroll:  # pushforward: the model's own predictions make the window, the truth stays the target
+        window, target_next = pushed_forward(simulator, window, batch, unroll, precision)
     target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
     with autocast(window.device, precision):
         predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context).float()
@@ -339,7 +372,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             batch, noise, num_moving = step_inputs(sampler, step, tc.batch_size, tc.noise_std, group.rank,
                                                    group.world_size)
             loss = batch_loss(simulator, batch.to(device), noise.to(device), config, model, num_moving,
-                              group.world_size, speed.precision)
+                              group.world_size, speed.precision, step)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()

@@ -214,3 +214,57 @@ def test_start_window_share_draws_from_the_start_and_leaves_the_release_sampler_
     assert 0.5 < share < 0.5 + uniform_share + 0.08
     with pytest.raises(ValueError, match="start_share"):
         WindowSampler(trajectories, 6, seed=3, start_share=1.5)
+
+
+def test_warm_up_ramps_the_rate_linearly_then_the_decay_goes_on() -> None:
+    config = load_config(None, ["train.learning_rate_warmup_steps=100"]).train
+    assert learning_rate(0, config) == pytest.approx(1e-6)  # a hundredth of the 1e-4 peak
+    assert learning_rate(49, config) == pytest.approx(0.5 * learning_rate(49, load_config().train))
+    assert learning_rate(100, config) == learning_rate(100, load_config().train)
+
+
+def test_pushforward_trains_from_the_models_own_window_against_the_truth(tiny_dataset: Path) -> None:
+    """`train.pushforward_*`: off, or before its start, no step unrolls; on, a share of steps unrolls 1..U steps
+    (the same for a resumed run); the loss of an unrolled step is the one-step loss on the window the model's own
+    predictions made, its target the true position after it."""
+    import torch
+
+    from gns_bench.data.format import read_metadata
+    from gns_bench.data.windows import WindowSampler
+    from gns_bench.model.features import acceleration_from_next_position
+    from gns_bench.model.noise import noisy_training_pair
+    from gns_bench.model.simulator import kinematic_mask
+    from gns_bench.train.checkpoints import build_simulator
+    from gns_bench.train.loop import pushforward_unroll, step_inputs, training_loss
+
+    off = load_config().train
+    assert all(pushforward_unroll(off, step) == 0 for step in range(200))
+    on = load_config(None, ["train.pushforward_steps=3", "train.pushforward_start=100",
+                            "train.pushforward_share=0.5"]).train
+    draws = [pushforward_unroll(on, step) for step in range(100, 1100)]
+    assert all(pushforward_unroll(on, step) == 0 for step in range(100))
+    assert set(draws) == {0, 1, 2, 3} and 0.4 < np.mean([d > 0 for d in draws]) < 0.6
+    assert draws == [pushforward_unroll(on, step) for step in range(100, 1100)]  # drawn from seed and step alone
+
+    config = load_config(None, ["model.message_passing_steps=1", "model.latent_size=16", "model.mlp_hidden_size=16",
+                                "train.pushforward_steps=2"])
+    trajectories = load_split(tiny_dataset, "train")
+    torch.manual_seed(0)
+    simulator = build_simulator(config, read_metadata(tiny_dataset))
+    sampler = WindowSampler(trajectories, 6, seed=0, future=3)
+    batch, noise, moving = step_inputs(sampler, 0, 2, 3e-4)
+    assert batch.future.shape[1] == 3
+    window, _ = noisy_training_pair(batch.window, batch.target, noise, 0.0)
+    kinematic = kinematic_mask(batch.particle_type)
+    with torch.no_grad():  # two steps by hand, kinematic particles on their true paths
+        for k in range(2):
+            nxt = simulator.predict_next_position(window, batch.particle_type, batch.batch)
+            nxt[kinematic] = batch.future[kinematic, k]
+            window = torch.cat([window[:, 1:], nxt[:, None]], dim=1)
+        target = simulator.normalise_acceleration(acceleration_from_next_position(window, batch.future[:, 2]))
+        error = (simulator(window, batch.particle_type, batch.batch) - target).square().sum(-1)
+        expected = error[~kinematic].sum() / moving
+        got = training_loss(simulator, batch, noise, 0.0, num_moving=moving, unroll=2)
+        plain = training_loss(simulator, batch, noise, 0.0, num_moving=moving)
+    assert float(got) == pytest.approx(float(expected), rel=1e-5)
+    assert float(got) != pytest.approx(float(plain), rel=1e-3)  # the unrolled step trains on something else
