@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-DEFAULT_HORIZONS = (1, 10, 100)
+DEFAULT_HORIZONS = (1, 10, 20, 100)  # fixed horizons every run is compared at (LagrangeBench reports 5-100)
 
 
 def position_mse(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> float:
