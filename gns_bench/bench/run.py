@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from gns_bench import autotune, tracking
+from gns_bench import autotune
 from gns_bench.bench.baseline import concatenated_baseline
 from gns_bench.bench.measure import (
     build_model,
@@ -29,6 +29,7 @@ from gns_bench.bench.measure import (
     train_step_seconds,
 )
 from gns_bench.config import ModelConfig, TrainConfig
+from gns_bench.datasets import default_connectivity_radius, tracking
 from gns_bench.devices import resolve_device
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
@@ -69,15 +70,6 @@ class BenchSettings:
         """The smallest run that exercises every measurement (tests)."""
         return cls(train_particles=100, scaling_2d=(200,), scaling_3d=(), inference_domains=[("waterdrop", 2, 200)],
                    repeats=1, gemm_sizes=(256,), compile=False)
-
-
-def domain_radius(domain: str, dim: int) -> float:
-    try:
-        from gns_bench.physics.spec import load_domain_spec
-
-        return float(load_domain_spec(domain).connectivity_radius)
-    except Exception:  # noqa: BLE001 - the spec is optional here; fall back to the paper's 2D radius scale
-        return 0.015 if dim == 2 else 0.035
 
 
 def measure_training(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
@@ -148,7 +140,7 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
         variants += [(True, domain) for domain in settings.inference_domains
                      if domain[0] in settings.compiled_rollout_domains]
     for compiled, (domain, dim, particles) in variants:
-        scene = synthetic_scene(particles, dim, domain_radius(domain, dim))
+        scene = synthetic_scene(particles, dim, default_connectivity_radius(domain))  # as its datasets carry it
         model = build_model(ModelConfig(), scene, device)
         for precision in ("fp32", "bf16"):
             b = rollout_breakdown(model, scene, device, precision, settings.repeats, compiled)
