@@ -227,10 +227,13 @@ def _scored(unit: Path) -> dict[str, Any] | None:
     return scored if scored is not None and scored.get("scoring") == SCORING else None
 
 
-def run_seed(study: Study, seed: int, log=print) -> None:
-    """One seed's three units: the peer for `steps` steps, gns-bench for `steps` steps, and gns-bench for the
-    peer's wall time (its steps from its own measured rate, capped by `train.max_wall_seconds`). Each unit trains
-    once (`trained.json`) and is scored under the current rule (`score.json`)."""
+def run_seed(study: Study, seed: int, log=print, sides: tuple[str, ...] | None = None) -> None:
+    """One seed's units (`sides`, default all): the peer for `steps` steps; gns-bench's cpu-tier recipe for
+    `steps` steps, and for the peer's wall time (its steps from its own measured rate, capped by
+    `train.max_wall_seconds`); and gns-bench trained as the peer trains (fp32, the paper's 5M-step decay, which
+    the cpu tier compresses into the run), which separates the implementation from the recipe. Each unit trains
+    once (`trained.json`) and is scored under the current rule (`score.json`); the peer's unit runs first
+    whatever `sides` says (the others need its time)."""
     from gns_bench.train.checkpoints import load_simulator
     from gns_bench.train.loop import train
 
@@ -264,17 +267,27 @@ def run_seed(study: Study, seed: int, log=print) -> None:
             _write(unit / "score.json", {**done, **score(simulator, tests, meta)})
         return done
 
-    log(f"seed {seed}: gns-bench, {study.steps} steps")
-    same_steps = ours("ours-steps", base)
-    budget = geo["train_seconds"]
-    steps = max(int(study.steps * budget / same_steps["train_seconds"]), 1)
-    log(f"seed {seed}: gns-bench for the peer's {budget:.0f} s (about {steps} steps at its rate)")
-    ours("ours-time", resolve_for_dataset(domain_config(study.domain, study.sweeps_dir, seed, steps, budget),
-                                          meta.default_connectivity_radius))
+    wanted = set(sides or SIDES)
+    if wanted & {"ours-steps", "ours-time"}:
+        log(f"seed {seed}: gns-bench, {study.steps} steps")
+        same_steps = ours("ours-steps", base)
+    if "ours-time" in wanted:
+        budget = geo["train_seconds"]
+        steps = max(int(study.steps * budget / same_steps["train_seconds"]), 1)
+        log(f"seed {seed}: gns-bench for the peer's {budget:.0f} s (about {steps} steps at its rate)")
+        ours("ours-time", resolve_for_dataset(domain_config(study.domain, study.sweeps_dir, seed, steps, budget),
+                                              meta.default_connectivity_radius))
+    if "ours-as-peer" in wanted:
+        log(f"seed {seed}: gns-bench trained as the peer is, {study.steps} steps")
+        as_peer = config_from_dict(apply_overrides(base.to_dict(), [
+            "train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000"]),
+            "the peer's recipe")
+        ours("ours-as-peer", as_peer)
 
 
 SIDES = {"geo-steps": "geoelements/gns, N steps", "ours-steps": "gns-bench, N steps",
-         "ours-time": "gns-bench, the peer's wall time"}
+         "ours-time": "gns-bench, the peer's wall time",
+         "ours-as-peer": "gns-bench as the peer trains (fp32, the paper's decay), N steps"}
 HORIZONS = ((1, "MSE at rollout step 1"), (10, "MSE over rollout steps 1-10"), (100, "MSE over rollout steps 1-100"))
 
 
@@ -322,7 +335,8 @@ def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware:
     compared = [("one_step_mse", "one-step MSE")] + [(f"mse_h{h}", name) for h, name in HORIZONS]
     lines += ["", "| comparison | " + " | ".join(name for _, name in compared) + " |",
               "|---|" + "---|" * len(compared)]
-    for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time")):
+    for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time"),
+                       ("ours-as-peer", "equal steps, the peer's recipe")):
         both = [*units[side].values(), *geo.values()]
         cells = []
         for key, _ in compared:
@@ -354,6 +368,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--test-trajectories", type=int, default=3)
     parser.add_argument("--sweeps", type=Path, default=Path("sweeps"))
+    parser.add_argument("--sides", nargs="+", choices=list(SIDES), default=None, help="units to run (default all)")
     parser.add_argument("--report", type=Path, default=None,
                         help="train nothing: write the domain's table from --work into REPORT/equal_budget_<domain>.md")
     args = parser.parse_args(argv)
@@ -370,7 +385,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads())))
     study = Study(args.domain, args.dataset, args.work, args.geo, args.sweeps, args.steps, args.test_trajectories)
     for seed in args.seeds:
-        run_seed(study, seed, log=lambda text: print(text, flush=True))
+        run_seed(study, seed, log=lambda text: print(text, flush=True), sides=args.sides)
 
 
 if __name__ == "__main__":
