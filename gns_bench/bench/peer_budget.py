@@ -296,6 +296,8 @@ def collect(work: Path) -> dict[str, dict[int, dict[str, Any]]]:
     found: dict[str, dict[int, dict[str, Any]]] = {side: {} for side in SIDES}
     for path in sorted(work.glob("*-seed*/score.json")):
         side, seed = path.parent.name.rsplit("-seed", 1)
+        if not seed.isdigit():  # a unit set aside (e.g. trained while another job shared its core)
+            continue
         scored = json.loads(path.read_text())
         if side in found and scored.get("scoring") == SCORING:
             found[side][int(seed)] = scored
