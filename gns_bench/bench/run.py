@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from gns_bench import autotune
+from gns_bench import autotune, tracking
 from gns_bench.bench.baseline import concatenated_baseline
 from gns_bench.bench.measure import (
     build_model,
@@ -29,7 +29,7 @@ from gns_bench.bench.measure import (
     train_step_seconds,
 )
 from gns_bench.config import ModelConfig, TrainConfig
-from gns_bench.datasets import default_connectivity_radius, tracking
+from gns_bench.datasets import default_connectivity_radius
 from gns_bench.devices import resolve_device
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
