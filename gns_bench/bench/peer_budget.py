@@ -283,11 +283,18 @@ def run_seed(study: Study, seed: int, log=print, sides: tuple[str, ...] | None =
             "train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000"]),
             "the peer's recipe")
         ours("ours-as-peer", as_peer)
+    if "ours-torch-init" in wanted:  # the one setting left that the peer does differently: PyTorch's initial weights
+        log(f"seed {seed}: gns-bench trained as the peer is, PyTorch's initialisation, {study.steps} steps")
+        torch_init = config_from_dict(apply_overrides(base.to_dict(), [
+            "train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000",
+            "model.init=torch"]), "the peer's recipe and initialisation")
+        ours("ours-torch-init", torch_init)
 
 
 SIDES = {"geo-steps": "geoelements/gns, N steps", "ours-steps": "gns-bench, N steps",
          "ours-time": "gns-bench, the peer's wall time",
-         "ours-as-peer": "gns-bench as the peer trains (fp32, the paper's decay), N steps"}
+         "ours-as-peer": "gns-bench as the peer trains (fp32, the paper's decay), N steps",
+         "ours-torch-init": "gns-bench as the peer trains, with PyTorch's initial weights, N steps"}
 HORIZONS = ((1, "MSE at rollout step 1"), (10, "MSE over rollout steps 1-10"), (100, "MSE over rollout steps 1-100"))
 
 
@@ -338,7 +345,8 @@ def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware:
     lines += ["", "| comparison | " + " | ".join(name for _, name in compared) + " |",
               "|---|" + "---|" * len(compared)]
     for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time"),
-                       ("ours-as-peer", "equal steps, the peer's recipe")):
+                       ("ours-as-peer", "equal steps, the peer's recipe"),
+                       ("ours-torch-init", "equal steps, the peer's recipe and initialisation")):
         both = [*units[side].values(), *geo.values()]
         cells = []
         for key, _ in compared:
