@@ -152,6 +152,10 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
     """
     # Everything that can refuse the input happens before a run folder or an MLflow run exists: the data and
     # their content hash, every split the run will read (and any other there), the checkpoint of a resume.
+    try:  # an unknown simulator is refused before anything is created
+        simulators.get(config.model.architecture)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     meta = read_metadata(dataset_dir)
     config = resolve_for_dataset(config, meta.default_connectivity_radius)
     min_length = config.model.input_sequence_length + 1

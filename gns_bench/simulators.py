@@ -41,8 +41,8 @@ Loss = Callable[..., "torch.Tensor"]
 
 def paper_schedule(config: Config) -> Callable[[int], float]:
     """The paper's learning rate: exponential decay from `train.learning_rate` towards `train.learning_rate_final`,
-    10x every `train.learning_rate_decay_steps` (App. B.3; `train.loop.learning_rate`)."""
-    from gns_bench.train.loop import learning_rate
+    10x every `train.learning_rate_decay_steps` (App. B.3; `train.losses.learning_rate`)."""
+    from gns_bench.train.losses import learning_rate
 
     return lambda step: learning_rate(step, config.train)
 
@@ -147,7 +147,7 @@ def _build_gns(config: Config, metadata: Metadata):
 
 def _gns_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
               precision="fp32", step=0):
-    from gns_bench.train.loop import pushforward_unroll, training_loss
+    from gns_bench.train.losses import pushforward_unroll, training_loss
 
     return training_loss(simulator, batch, position_noise, config.train.position_correction, model, num_moving,
                          world_size, precision, pushforward_unroll(config.train, step))

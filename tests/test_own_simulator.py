@@ -19,11 +19,18 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 ARCHITECTURE = "particle_mlp:SPEC"
 
 
-def test_an_unknown_architecture_is_refused_with_what_is_registered() -> None:
-    with pytest.raises(ConfigError, match="no such simulator; registered: cconv, dpi, gns"):
-        load_config(None, ["model.architecture=mlp"])
-    with pytest.raises(ConfigError, match="cannot import 'SPEC' from 'no_such_module'"):
-        load_config(None, ["model.architecture=no_such_module:SPEC"])
+def test_an_unknown_architecture_is_refused_with_what_is_registered(tmp_path: Path) -> None:
+    from gns_bench.data.tiny import generate_tiny
+    from gns_bench.pipeline import train_run
+
+    with pytest.raises(ValueError, match="no such simulator; registered: cconv, dpi, gns"):
+        simulators.get("mlp")
+    with pytest.raises(ValueError, match="cannot import 'SPEC' from 'no_such_module'"):
+        simulators.get("no_such_module:SPEC")
+    data = generate_tiny(tmp_path / "tiny", "smoke", seed=0)
+    with pytest.raises(ConfigError, match="model.architecture = 'mlp': no such simulator"):
+        train_run(load_config(None, ["model.architecture=mlp"]), data, tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # refused before anything was created
 
 
 def test_the_example_trains_evaluates_sweeps_and_is_reported(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -246,7 +246,9 @@ def ablation_section(sweep: SweepSpec, rows: list[RunRow], out_dir: Path, compar
             lines += ["", f"*vs the default*: {error_measure(rows)[1] or 'no common horizon'}, geometric mean over "
                       "seeds against the default's, with its 95% interval, runs on the default's CPU kinds only "
                       "(`gns_bench/report/verdict.py`): the number the verdict below judges."]
-        lines += ["", *verdict_lines(axis, rows, reference), ""] if judged else [""]
+        finding = "better" in reference or bool(reference.get("no_effect"))
+        rules = ["", VERDICT_RULES] if finding else []  # how every verdict above was drawn
+        lines += ["", *verdict_lines(axis, rows, reference), *rules, ""] if judged else [""]
     return lines
 
 
@@ -302,7 +304,6 @@ def verdict_lines(axis: str, rows: list[RunRow], reference: dict) -> list[str]:
         lines += ["", f"**Verdict on the one-step error ({axis}): {one_step.verdict}.** Paper (Sec. 5.4, Fig. 4's "
                       f"upper row): {reference.get('one_step_summary', '—')}. Ours: {one_step.detail}; one-step MSE "
                       "on the test trajectories' uncorrupted inputs (column *one-step MSE*)." + so_far]
-    lines += ["", VERDICT_RULES]
     return lines
 
 

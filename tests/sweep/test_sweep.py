@@ -215,7 +215,7 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
     sweep = load_sweep(path)
     # share=False: the end-to-end test trained these configs already; this test is about training them
     roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
-    from gns_bench.train import loop
+    from gns_bench.train import losses as loop  # where the GNS's training loss lives (its registry entry calls it)
 
     real, calls = loop.training_loss, {"n": 0}
 
@@ -249,7 +249,7 @@ def test_a_run_whose_plan_changed_starts_afresh(sweeps: Path, tmp_path: Path,
     text = GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[1]")
     path.write_text(text)
     roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
-    from gns_bench.train import loop
+    from gns_bench.train import losses as loop
 
     real = loop.training_loss
 
@@ -352,7 +352,7 @@ def test_a_failing_run_is_recorded_failed_and_the_sweep_goes_on(sweeps: Path, tm
     path = sweeps / "tests" / "failing.toml"
     path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
     sweep = load_sweep(path)
-    from gns_bench.train import loop
+    from gns_bench.train import losses as loop
 
     real = loop.training_loss
 
