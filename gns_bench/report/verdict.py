@@ -135,12 +135,8 @@ def judge(errors: Mapping[Any, Sequence[float]], reference: Mapping[str, Any], q
         words.append(f"{a} vs {b}: {interval_text(interval)} ({side}; {len(va)} vs {len(vb)} seeds, {method}{note})")
     if not outcomes:
         return Verdict(NOT_RUN, "none of the paper's comparisons has both values finished")
-    detail = "; ".join(words) + f" ({quantity} of the first over the second, 95% interval)"
-    if "no" in outcomes:
-        return Verdict(CONTRADICTED, detail)
-    if all(o == "yes" for o in outcomes):
-        return Verdict(REPRODUCED, detail)
-    return Verdict(INCONCLUSIVE, detail)
+    return _decided(outcomes, "no", "yes",
+                    "; ".join(words) + f" ({quantity} of the first over the second, 95% interval)")
 
 
 def _equivalence(arms: Mapping[Any, Arm], default_value: Any, quantity: str) -> Verdict:
@@ -170,10 +166,15 @@ def _equivalence(arms: Mapping[Any, Arm], default_value: Any, quantity: str) -> 
                         else "neither within nor beyond the margin")}[outcomes[-1]]
         words.append(f"{key}: {interval_text(wide)} the default's {quantity} ({why}; {len(va)} vs {len(vd)} seeds, "
                      f"{method}{note})")
-    detail = "; ".join(words) + f" (95% interval; margin {m}x either way)"
-    if "different" in outcomes:
+    return _decided(outcomes, "different", "equivalent", "; ".join(words) + f" (95% interval; margin {m}x either way)")
+
+
+def _decided(outcomes: list[str], against: str, agrees: str, detail: str) -> Verdict:
+    """Contradicted when any comparison went against the finding, reproduced when every one agreed with it (a
+    comparison refused or left open makes it inconclusive)."""
+    if against in outcomes:
         return Verdict(CONTRADICTED, detail)
-    if all(o == "equivalent" for o in outcomes):
+    if all(o == agrees for o in outcomes):
         return Verdict(REPRODUCED, detail)
     return Verdict(INCONCLUSIVE, detail)
 
