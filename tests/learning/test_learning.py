@@ -20,7 +20,7 @@ import scenes
 
 from gns_bench.data.format import load_split
 from gns_bench.model import features, noise
-from gns_bench.train import loop
+from gns_bench.train import losses
 
 BATCH = {"batch_size": 8}
 MEAN_RATIO = (0.7, 1.4)  # the mean one-step acceleration of free-falling particles over g
@@ -141,7 +141,7 @@ def test_break_noise_target_not_corrected(data: Path, tmp_path: Path, monkeypatc
         noisy = window + position_noise
         return noisy, clean_acceleration + 2.0 * noisy[:, -1] - noisy[:, -2]  # the clean acceleration as target
 
-    monkeypatch.setattr(loop, "noisy_training_pair", uncorrected)
+    monkeypatch.setattr(losses, "noisy_training_pair", uncorrected)
     simulator = checks.trained(data, tmp_path / "run", train=BATCH)
     # measured: 24 particles of the resting blocks went through the floor (8.1 R from the truth), 17 of the
     # landing ones, and two free-falling blocks hovered (centre falls 0.11 and 0.16 of the truth's)
@@ -170,5 +170,5 @@ def test_break_rollout_start_never_seen(tmp_path: Path):
 
 
 def test_noise_module_is_the_one_training_uses():
-    """The break above patches `train.loop.noisy_training_pair`: it must be the noise module's function."""
-    assert loop.noisy_training_pair is noise.noisy_training_pair
+    """The break above patches `train.losses.noisy_training_pair`: it must be the noise module's function."""
+    assert losses.noisy_training_pair is noise.noisy_training_pair
