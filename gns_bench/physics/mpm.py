@@ -28,7 +28,7 @@ import taichi as ti
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.physics.inflow import prebirth_path
 from gns_bench.physics.mpm_kernels import GOOP, INACTIVE, SAND, WATER, build_kernels
-from gns_bench.physics.scenes import MpmScene, build_scene, scene_params
+from gns_bench.physics.scenes import MpmScene, build_scene, scene_spec
 from gns_bench.physics.spec import DomainSpec
 from gns_bench.physics.taichi_runtime import ensure_taichi
 
@@ -260,7 +260,7 @@ def simulate(spec: DomainSpec, tier_name: str, rng: np.random.Generator) -> Traj
     position = np.concatenate([material_pos, kinematic], axis=1).astype(np.float32)
     types = np.concatenate([scene.particle_type,
                             np.full(kinematic.shape[1], KINEMATIC_PARTICLE_TYPE)]).astype(np.int64)
-    if "inflow" in scene_params(spec, tier):  # kinematic particles are there from the start
+    if scene_spec(spec, tier).inflow:  # kinematic particles are there from the start
         birth_step = np.concatenate([scene.birth_step, np.zeros(kinematic.shape[1], np.int64)])
     step_context = None
     if context is not None:

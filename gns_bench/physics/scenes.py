@@ -41,6 +41,7 @@ Obstacles become static grid boundaries in the solver and kinematic particles (t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -136,58 +137,136 @@ def block_scene(material: int, particle_type: int, block_lo: list[float], block_
                     b[:, 0].copy(), b[:, 1].copy())
 
 
-SCENE_KEYS = frozenset({
-    "blocks", "block_size", "block_materials", "initial_speed", "on_floor", "ramps", "ramp_length",
-    "ramp_angle_deg", "ramp_thickness", "random_floor", "floor_height", "shake_amplitude", "shake_frequency",
-    "container_width", "fill_height", "shape", "blob_discs", "blob_materials", "initial_jitter", "inflow"})
+Range = float | tuple[float, float]  # a fixed value, or [min, max] drawn uniformly
 SHAPES = ("block", "blob")
 
 
-def scene_params(spec: DomainSpec, tier: Tier) -> dict[str, Any]:
-    """The spec's `[scene]` with the tier's overrides, every key checked (a typo must not be ignored)."""
-    for where, table in (("scene", spec.scene), (f"tiers.{tier.name}.scene", tier.params.get("scene", {}))):
+@dataclass(frozen=True)
+class SceneSpec:
+    """An MPM domain's `[scene]` with its tier's `[tiers.<name>.scene]` over it: every key typed, with its
+    default here and nowhere else (the module's docstring says what each means). Built and checked once by
+    `scene_spec`; `build_scene` only reads it."""
+
+    blocks: tuple[int, int] = (1, 1)
+    block_size: Range = (0.1, 0.3)
+    block_materials: tuple[str, ...] | None = None  # None: every material of the spec
+    initial_speed: float = 0.0
+    on_floor: bool = False
+    ramps: tuple[int, int] | None = None  # None: no ramps (2D)
+    ramp_length: Range = (0.15, 0.3)
+    ramp_angle_deg: Range = (-40.0, 40.0)
+    ramp_thickness: float = 0.03
+    random_floor: int = 0  # floor segments; 0: the container's flat floor
+    floor_height: tuple[float, float] = (0.0, 0.2)
+    shake_amplitude: Range | None = None  # None: a still container (set with shake_frequency)
+    shake_frequency: Range | None = None
+    container_width: float = 0.7
+    fill_height: float | None = None  # None: the whole container
+    shape: str = "block"
+    blob_discs: tuple[int, int] = (3, 5)
+    blob_materials: tuple[str, ...] | None = None
+    initial_jitter: float = 0.0
+    inflow: tuple[Emitter, ...] = ()
+    inflow_key: str = "scene.inflow"  # where `inflow` was declared, for errors naming it
+
+    @property
+    def shaken(self) -> bool:
+        return self.shake_amplitude is not None
+
+
+SCENE_KEYS = frozenset(f.name for f in dataclasses.fields(SceneSpec)) - {"inflow_key"}
+
+
+def scene_spec(spec: DomainSpec, tier: Tier) -> SceneSpec:
+    """The spec's `[scene]` with the tier's overrides, every key checked once (a typo must not be ignored;
+    an error names the file and the key)."""
+    overrides = tier.params.get("scene", {})
+    for where, table in (("scene", spec.scene), (f"tiers.{tier.name}.scene", overrides)):
         unknown = sorted(set(table) - SCENE_KEYS)
         if unknown:
             raise ValueError(f"{spec.path}: key '{where}.{unknown[0]}': unknown scene key; expected some of "
                              f"{sorted(SCENE_KEYS)}")
-    s = {**spec.scene, **tier.params.get("scene", {})}
+    s = {**spec.scene, **overrides}
 
     def where(key: str) -> str:
-        table = f"tiers.{tier.name}.scene" if key in tier.params.get("scene", {}) else "scene"
-        return f"{spec.path}: key '{table}.{key}'"
+        return f"{spec.path}: key '{'tiers.' + tier.name + '.scene' if key in overrides else 'scene'}.{key}'"
 
+    def number(key: str, minimum: float = 0.0) -> float:
+        value = s[key]
+        if isinstance(value, bool) or not isinstance(value, int | float) or value < minimum:
+            raise ValueError(f"{where(key)}: expected a number >= {minimum}, got {value!r}")
+        return float(value)
+
+    def pair(key: str, kind: type = float) -> tuple:
+        value = s[key]
+        ok = (isinstance(value, list) and len(value) == 2 and value[0] <= value[1]
+              and all(isinstance(v, kind if kind is int else int | float) and not isinstance(v, bool)
+                      for v in value))
+        if not ok:
+            raise ValueError(f"{where(key)}: expected [min, max] with min <= max ({kind.__name__}s), got {value!r}")
+        return (kind(value[0]), kind(value[1]))
+
+    def span(key: str) -> Range:
+        return number(key, -math.inf) if isinstance(s[key], int | float) and not isinstance(s[key], bool) \
+            else pair(key)
+
+    def names(key: str, most: int | None = None) -> tuple[str, ...]:
+        value = s[key]
+        if not (isinstance(value, list) and 1 <= len(value) <= (most or len(value) or 1)
+                and all(n in spec.materials for n in value)):
+            raise ValueError(f"{where(key)}: expected {'one or two' if most == 2 else 'one or more'} of the spec's "
+                             f"materials {sorted(spec.materials)}, got {value!r}")
+        return tuple(value)
+
+    got: dict[str, Any] = {}
+    for key in ("blocks", "ramps", "blob_discs"):
+        if key in s:
+            got[key] = pair(key, int)
+            if got[key][0] < (1 if key == "blob_discs" else 0):
+                raise ValueError(f"{where(key)}: expected counts >= {1 if key == 'blob_discs' else 0}, got {s[key]!r}")
+    for key in ("block_size", "ramp_length", "ramp_angle_deg", "shake_amplitude", "shake_frequency"):
+        if key in s:
+            got[key] = span(key)
+    if "floor_height" in s:
+        got["floor_height"] = pair("floor_height")
+    for key in ("initial_speed", "ramp_thickness", "container_width", "fill_height", "initial_jitter"):
+        if key in s:
+            got[key] = number(key)
+    if "random_floor" in s:
+        if isinstance(s["random_floor"], bool) or not isinstance(s["random_floor"], int) or s["random_floor"] < 0:
+            raise ValueError(f"{where('random_floor')}: expected a whole number of segments >= 0, "
+                             f"got {s['random_floor']!r}")
+        got["random_floor"] = s["random_floor"]
+    if "on_floor" in s:
+        if not isinstance(s["on_floor"], bool):
+            raise ValueError(f"{where('on_floor')}: expected true or false, got {s['on_floor']!r}")
+        got["on_floor"] = s["on_floor"]
+    if "block_materials" in s:
+        got["block_materials"] = names("block_materials")
     if ("shake_amplitude" in s) != ("shake_frequency" in s):
         raise ValueError(f"{where('shake_frequency')}: shaking needs both shake_amplitude and shake_frequency")
-    for key in ("fill_height", "initial_jitter"):
-        value = s.get(key, 1.0)
-        if isinstance(value, bool) or not isinstance(value, int | float) or value < 0:
-            raise ValueError(f"{where(key)}: expected a length >= 0, got {value!r}")
-    if s.get("shape", "block") not in SHAPES:
-        raise ValueError(f"{where('shape')}: expected one of {SHAPES}, got {s['shape']!r}")
-    if s.get("shape") == "blob":
-        names = s.get("blob_materials")
-        if spec.dim != 2 or not (isinstance(names, list) and 1 <= len(names) <= 2
-                                 and all(n in spec.materials for n in names)):
+    shape = s.get("shape", SceneSpec.shape)
+    if shape not in SHAPES:
+        raise ValueError(f"{where('shape')}: expected one of {SHAPES}, got {shape!r}")
+    got["shape"] = shape
+    if shape == "blob":
+        if spec.dim != 2 or "blob_materials" not in s:
             raise ValueError(f"{where('blob_materials')}: blobs (2D only) need blob_materials, one or two of "
-                             f"the spec's materials {sorted(spec.materials)}, got {names!r}")
-        discs = s.get("blob_discs", [3, 5])
-        if not (isinstance(discs, list) and len(discs) == 2 and all(isinstance(n, int) for n in discs)
-                and 1 <= discs[0] <= discs[1]):
-            raise ValueError(f"{where('blob_discs')}: expected [min, max] disc counts, 1 <= min <= max, "
-                             f"got {discs!r}")
-    return s
+                             f"the spec's materials {sorted(spec.materials)}, got {s.get('blob_materials')!r}")
+        got["blob_materials"] = names("blob_materials", most=2)
+    if "inflow" in s:
+        key = f"tiers.{tier.name}.scene.inflow" if "inflow" in overrides else "scene.inflow"
+        got["inflow"] = tuple(parse_emitters(s["inflow"], str(spec.path), key, spec.materials, spec.dim))
+        got["inflow_key"] = key
+    return SceneSpec(**got)
 
 
-def inflow_emitters(spec: DomainSpec, tier: Tier, s: dict[str, Any], lo: np.ndarray, hi: np.ndarray,
+def inflow_emitters(spec: DomainSpec, scene: SceneSpec, lo: np.ndarray, hi: np.ndarray,
                     spacing: float) -> list[Emitter]:
-    """The scene's `inflow` nozzles, validated and inside the container (errors name the file and key)."""
-    if "inflow" not in s:
-        return []
-    key = f"tiers.{tier.name}.scene.inflow" if "inflow" in tier.params.get("scene", {}) else "scene.inflow"
-    emitters = parse_emitters(s["inflow"], str(spec.path), key, spec.materials, spec.dim)
-    for i, e in enumerate(emitters):
-        e.check_inside(lo, hi, 2 * spacing, spacing, spec.dt, f"{spec.path}: key '{key}[{i}].position'")
-    return emitters
+    """The scene's `inflow` nozzles, checked to lie inside the container (errors name the file and key)."""
+    for i, e in enumerate(scene.inflow):
+        e.check_inside(lo, hi, 2 * spacing, spacing, spec.dt, f"{spec.path}: key '{scene.inflow_key}[{i}].position'")
+    return list(scene.inflow)
 
 
 def _uniform(rng: np.random.Generator, pair: Any) -> float:
@@ -195,24 +274,24 @@ def _uniform(rng: np.random.Generator, pair: Any) -> float:
     return float(rng.uniform(lo, hi))
 
 
-def _ramps(s: dict[str, Any], lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+def _ramps(s: SceneSpec, lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
     """Static ramps with centres between 15% and 60% of the height [lo, hi] (the fill region)."""
-    count = int(rng.integers(s["ramps"][0], s["ramps"][1] + 1))
+    count = int(rng.integers(s.ramps[0], s.ramps[1] + 1))
     polys = []
     for _ in range(count):
-        length = _uniform(rng, s.get("ramp_length", [0.15, 0.3]))
-        angle = math.radians(_uniform(rng, s.get("ramp_angle_deg", [-40.0, 40.0])))
+        length = _uniform(rng, s.ramp_length)
+        angle = math.radians(_uniform(rng, s.ramp_angle_deg))
         margin = 0.5 * length
         center = np.array([rng.uniform(lo[0] + margin, hi[0] - margin),
                            rng.uniform(lo[1] + 0.15 * (hi[1] - lo[1]), lo[1] + 0.6 * (hi[1] - lo[1]))])
-        polys.append(rectangle(center, length, float(s.get("ramp_thickness", 0.03)), angle))
+        polys.append(rectangle(center, length, s.ramp_thickness, angle))
     return polys
 
 
-def _floor(s: dict[str, Any], lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
-    segments = int(s["random_floor"])
+def _floor(s: SceneSpec, lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> list[np.ndarray]:
+    segments = s.random_floor
     xs = np.linspace(lo[0] - 0.05, hi[0] + 0.05, segments + 1)
-    heights = lo[1] + rng.uniform(*s.get("floor_height", [0.0, 0.2]), size=segments + 1)
+    heights = lo[1] + rng.uniform(*s.floor_height, size=segments + 1)
     bottom = lo[1] - 0.1
     return [np.array([[xs[i], bottom], [xs[i + 1], bottom], [xs[i + 1], heights[i + 1]], [xs[i], heights[i]]])
             for i in range(segments)]
@@ -220,34 +299,34 @@ def _floor(s: dict[str, Any], lo: np.ndarray, hi: np.ndarray, rng: np.random.Gen
 
 def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.random.Generator) -> MpmScene:
     """Draw one trajectory's initial condition. Deterministic given `rng`."""
-    s = scene_params(spec, tier)
+    s = scene_spec(spec, tier)
     dim = spec.dim
     grid = int(tier.params["grid"])
     spacing = 0.5 / grid  # the usual MPM sampling's density: 2 particles per grid cell per dimension
     bounds = np.asarray(spec.bounds, float)
     lo, hi = bounds[:, 0].copy(), bounds[:, 1].copy()
     shake = None
-    if "shake_amplitude" in s:
-        amp = _uniform(rng, s["shake_amplitude"])
-        omega = 2 * math.pi * _uniform(rng, s["shake_frequency"])
-        width = float(s.get("container_width", 0.7)) * (hi[0] - lo[0])
+    if s.shaken:
+        amp = _uniform(rng, s.shake_amplitude)
+        omega = 2 * math.pi * _uniform(rng, s.shake_frequency)
+        width = s.container_width * (hi[0] - lo[0])
         # the container's walls sweep +-amp around the middle and must stay in the bounds
         amp = min(amp, 0.5 * (hi[0] - lo[0] - width))
         mid = 0.5 * (lo[0] + hi[0])
         lo[0], hi[0] = mid - width / 2, mid + width / 2
         shake = (amp, omega)
     fill_hi = hi.copy()  # blocks and ramps go below fill_height
-    if "fill_height" in s:
-        fill_hi[1] = min(hi[1], lo[1] + float(s["fill_height"]))
+    if s.fill_height is not None:
+        fill_hi[1] = min(hi[1], lo[1] + s.fill_height)
 
-    emitters = inflow_emitters(spec, tier, s, lo, hi, spacing)
+    emitters = inflow_emitters(spec, s, lo, hi, spacing)
     inflow = [e.particles(spacing, spec.dt, tier.sequence_length, rng) for e in emitters]
 
     for _ in range(MAX_PLACEMENT_TRIES):
         polygons: list[np.ndarray] = []
-        if dim == 2 and s.get("ramps"):
+        if dim == 2 and s.ramps is not None:
             polygons += _ramps(s, lo, fill_hi, rng)
-        if dim == 2 and s.get("random_floor"):
+        if dim == 2 and s.random_floor:
             polygons += _floor(s, lo, hi, rng)
         if not emitters or not polygons or _clear_of(polygons, emitters, spacing, spec.dt):
             break
@@ -270,7 +349,7 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
                            f"in {MAX_PLACEMENT_TRIES} tries; check [scene] block_size and the tier's "
                            "max_particles")
     position, velocity, material, ptype = [], [], [], []
-    vmax = float(s.get("initial_speed", 0.0))
+    vmax = s.initial_speed
 
     def add(points: np.ndarray, vel: np.ndarray, name: str) -> None:
         position.append(points)
@@ -279,15 +358,15 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
         ptype.append(np.full(len(points), spec.particle_types[name]))
 
     for block in blocks:
-        if s.get("shape", "block") == "blob":
+        if s.shape == "blob":
             vel = rng.uniform(-vmax, vmax, size=dim)
-            names = s["blob_materials"]
+            names = s.blob_materials
             angle = rng.uniform(0.0, 2 * math.pi)  # the dividing line, through the blob's centroid
             side = (block - block.mean(axis=0)) @ np.array([math.cos(angle), math.sin(angle)]) >= 0.0
             add(block[side], vel, names[0])
             add(block[~side], vel, names[-1])
         else:
-            names = list(s.get("block_materials", list(models)))
+            names = list(s.block_materials or models)
             name = names[int(rng.integers(len(names)))]
             add(block, rng.uniform(-vmax, vmax, size=dim), name)
     birth = [np.zeros(sum(len(p) for p in position), np.int64)]
@@ -302,7 +381,7 @@ def build_scene(spec: DomainSpec, tier: Tier, models: dict[str, int], rng: np.ra
         kinematic = _container_walls(lo, hi, spacing)
     scene = MpmScene(np.concatenate(position), np.concatenate(velocity), np.concatenate(material),
                      np.concatenate(ptype), lo, hi, polygons, kinematic, shake, np.concatenate(birth))
-    jitter = float(s.get("initial_jitter", 0.0))
+    jitter = s.initial_jitter
     if jitter > 0.0:
         # a stream of its own (a child of the trajectory's seed), so the scene above is drawn as without it
         noise = rng.spawn(1)[0]
@@ -327,28 +406,28 @@ def _container_walls(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarr
     return np.concatenate([left, right, np.stack([xs, np.full_like(xs, lo[1])], 1)])
 
 
-def _place_blocks(s: dict[str, Any], dim: int, lo: np.ndarray, hi: np.ndarray, spacing: float,
+def _place_blocks(s: SceneSpec, dim: int, lo: np.ndarray, hi: np.ndarray, spacing: float,
                   polygons: list[np.ndarray], rng: np.random.Generator,
                   keep_out: list[tuple[np.ndarray, np.ndarray]] = ()) -> list[np.ndarray] | None:
     """Non-overlapping random boxes (or blobs) of particles, clear of the obstacles and the `keep_out` boxes
     (the inflow nozzles), or None if they do not fit."""
-    count = int(rng.integers(s.get("blocks", [1, 1])[0], s.get("blocks", [1, 1])[1] + 1))
+    count = int(rng.integers(s.blocks[0], s.blocks[1] + 1))
     margin = 2 * spacing
     floor_y = lo[1]
     placed: list[tuple[np.ndarray, np.ndarray]] = list(keep_out)
     blocks = []
     for _ in range(count):
         for _ in range(50):
-            size = np.array([_uniform(rng, s.get("block_size", [0.1, 0.3])) for _ in range(dim)])
+            size = np.array([_uniform(rng, s.block_size) for _ in range(dim)])
             size = np.minimum(size, hi - lo - 2 * margin)
             b_lo = np.array([rng.uniform(lo[d] + margin, hi[d] - margin - size[d]) for d in range(dim)])
-            if s.get("on_floor"):
+            if s.on_floor:
                 b_lo[1] = floor_y + spacing / 2
             b_hi = b_lo + size
             if any(np.all(b_lo < p_hi + margin) and np.all(p_lo < b_hi + margin) for p_lo, p_hi in placed):
                 continue
-            if s.get("shape", "block") == "blob":
-                pts, blob_solidity = blob_points(b_lo, b_hi, spacing, s.get("blob_discs", [3, 5]), rng)
+            if s.shape == "blob":
+                pts, blob_solidity = blob_points(b_lo, b_hi, spacing, list(s.blob_discs), rng)
                 if len(pts) < 3 or blob_solidity > BLOB_MAX_SOLIDITY:
                     continue
             else:

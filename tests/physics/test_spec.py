@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -121,3 +122,24 @@ def test_mpm_rejects_unknown_solver_and_scene_keys(section: str, key: str) -> No
         spec = dataclasses.replace(spec, solver_params={**spec.solver_params, key: 1})
     with pytest.raises(ValueError, match=f"'{section}.{key}'"):
         simulate(spec, "smoke", np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("block_size", [0.3, 0.1], "[min, max] with min <= max"),
+    ("blocks", [1.5, 2], "[min, max] with min <= max (ints)"),
+    ("on_floor", "yes", "true or false"),
+    ("initial_speed", -1.0, "a number >= 0.0"),
+    ("block_materials", ["lava"], "of the spec's materials"),
+    ("random_floor", 2.5, "a whole number of segments"),
+])
+def test_a_scene_key_of_the_wrong_kind_is_refused_naming_file_and_key(key: str, value, expected: str) -> None:
+    """`scenes.scene_spec` types every `[scene]` key once; a tier's override is named as the tier's."""
+    from gns_bench.physics.scenes import SceneSpec, scene_spec
+
+    spec = load_domain_spec("waterramps")
+    tier = spec.tier("smoke")
+    assert scene_spec(spec, tier).container_width == SceneSpec.container_width == 0.7  # unset: the one default
+    bad = dataclasses.replace(tier, params={**tier.params, "scene": {**tier.params.get("scene", {}), key: value}})
+    with pytest.raises(ValueError, match=re.escape(f"{spec.path}: key 'tiers.smoke.scene.{key}'") + ".*"
+                       + re.escape(expected)):
+        scene_spec(spec, bad)

@@ -23,7 +23,7 @@ from gns_bench.physics.geometry import (
 )
 from gns_bench.physics.mpm import MaterialParams, material_params, run_scene
 from gns_bench.physics.mpm_kernels import WATER
-from gns_bench.physics.scenes import MpmScene, build_scene, inflow_emitters, scene_params
+from gns_bench.physics.scenes import MpmScene, build_scene, inflow_emitters, scene_spec
 from gns_bench.physics.spec import (
     SpecError,
     UnknownDomainError,
@@ -248,7 +248,7 @@ def test_inflow_streams_are_seeded_at_random() -> None:
     spec = load_domain_spec("waterramps-inflow").for_tier("small")
     tier = spec.tier("small")
     spacing, bounds = 0.5 / tier.params["grid"], np.asarray(spec.bounds)
-    emitter = inflow_emitters(spec, tier, scene_params(spec, tier), bounds[:, 0], bounds[:, 1], spacing)[0]
+    emitter = inflow_emitters(spec, scene_spec(spec, tier), bounds[:, 0], bounds[:, 1], spacing)[0]
     pos, birth = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(0))
     again, _ = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(0))
     other, _ = emitter.particles(spacing, spec.dt, tier.sequence_length, np.random.default_rng(1))
