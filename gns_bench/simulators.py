@@ -16,6 +16,8 @@ What the module must offer evaluation and rollouts: `dim`, `radius`, `bounds` (t
 `self_edges` (read only when `uses_edges`), `build_graph(position, batch)` (likewise), and
 `predict_next_position(window [N, W, D], particle_type [N], batch [N] or None, context [B, C] or None,
 edge_index or None, bounds or None, precision)` -> [N, D]. `examples/particle_mlp.py` is a complete one.
+Optional: `predicts_moving_only = True` says its `predict_next_position` also takes `moving_only=True`, and
+then may skip kinematic particles' work (rollouts overwrite their positions with the data; `eval.moving_only`).
 
 This module sits above `model/` and `train/` (it names what both hold) and imports them only when a simulator
 is built or trained.
@@ -28,6 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any
+
+from gns_bench.config import ConfigError
 
 if TYPE_CHECKING:
     import torch
@@ -153,10 +157,20 @@ def _gns_loss(simulator, batch, position_noise, config, *, model=None, num_movin
                          world_size, precision, pushforward_unroll(config.train, step))
 
 
+def _radius(config: Config) -> float:
+    """The connectivity radius the baselines start from: `model.connectivity_radius`, resolved against the
+    dataset where it was opened (`config.resolve_for_dataset`)."""
+    if config.model.connectivity_radius is None:
+        raise ConfigError("model.connectivity_radius is unset: resolve the config against the dataset first "
+                          "(config.resolve_for_dataset)")
+    return float(config.model.connectivity_radius)
+
+
 def _build_cconv(config: Config, metadata: Metadata):
     from gns_bench.model.cconv import CConvSimulator
 
-    return CConvSimulator(config.cconv, metadata, input_sequence_length=config.model.input_sequence_length)
+    return CConvSimulator(config.cconv, metadata, _radius(config),
+                          input_sequence_length=config.model.input_sequence_length)
 
 
 def _cconv_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,
@@ -180,7 +194,8 @@ def _cconv_schedule(config: Config) -> Callable[[int], float]:
 def _build_dpi(config: Config, metadata: Metadata):
     from gns_bench.model.dpi import DPISimulator
 
-    return DPISimulator(config.dpi, metadata, input_sequence_length=config.model.input_sequence_length)
+    return DPISimulator(config.dpi, metadata, _radius(config),
+                        input_sequence_length=config.model.input_sequence_length)
 
 
 def _dpi_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,

@@ -159,6 +159,9 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
     return rows
 
 
+SCALING_DOMAINS = {2: "waterdrop", 3: "water-3d"}  # whose radius the scaling scenes take
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory (VmHWM). Unlike getrusage's ru_maxrss, which a child started by
     fork and exec inherits from its parent, it belongs to this process alone."""
@@ -172,7 +175,8 @@ def scaling_point(particles: int, dim: int, device: str) -> dict[str, Any]:
     """One rollout step at this size (run in a fresh process by `measure_scaling`)."""
     torch_device = resolve_device(device)
     baseline_mb = peak_rss_mb()
-    scene = synthetic_scene(particles, dim, 0.015 if dim == 2 else 0.035)
+    # The scene's density is fixed by its neighbour count; the radius is a real domain's of that dimension.
+    scene = synthetic_scene(particles, dim, default_connectivity_radius(SCALING_DOMAINS[dim]))
     model = build_model(ModelConfig(), scene, torch_device)
     b = rollout_breakdown(model, scene, torch_device, "fp32", repeats=1)
     if torch_device.type == "cuda":
@@ -208,6 +212,7 @@ def bench_dir(root: Path, device: str = "auto") -> Path:
 
 def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
               log_to_mlflow: bool = True) -> dict[str, Any]:
+    from gns_bench.bench import skips
     from gns_bench.bench.report import write_bench_report
 
     settings = settings or BenchSettings()
@@ -225,6 +230,8 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     results["autotune"] = measure_autotune(settings, device)
     print("rollout steps of the paper's domains...", flush=True)
     results["inference"] = measure_inference(settings, device)
+    print("the kinematic particles' skip...", flush=True)
+    results["skips"] = skips.measure(settings.train_particles, repeats=settings.repeats)
     print("scaling in particle count...", flush=True)
     results["scaling"] = measure_scaling(settings)
     results["steadiness"] = measure_steadiness(results["train"], settings, device)

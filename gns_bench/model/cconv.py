@@ -293,7 +293,10 @@ class CConvSimulator(nn.Module):
     uses_edges = True
     self_edges = False  # the authors' search leaves a particle out of its own neighbourhood
 
-    def __init__(self, config: CConvConfig, metadata: Metadata, input_sequence_length: int = 6):
+    def __init__(self, config: CConvConfig, metadata: Metadata, connectivity_radius: float,
+                 input_sequence_length: int = 6):
+        """`connectivity_radius`: the resolved `model.connectivity_radius` (the dataset's R unless set), the
+        convolution's radius unless `cconv.radius` sets its own."""
         super().__init__()
         # Rollouts start after this many ground-truth frames, as the GNS's do, so both are scored on the same
         # steps; CConv itself reads only the last two (its velocity).
@@ -303,7 +306,7 @@ class CConvSimulator(nn.Module):
             raise ConfigError("cconv.gravity: the dataset's metadata.json has no 'gravity'; set it in the config")
         # Resolve every dataset-dependent default here, so the stored (and logged) config holds the numbers.
         config = dataclasses.replace(
-            config, radius=float(metadata.default_connectivity_radius if config.radius is None else config.radius),
+            config, radius=float(connectivity_radius if config.radius is None else config.radius),
             gravity=list(gravity),
             wall_features=bool(metadata.walls if config.wall_features is None else config.wall_features))
         config.validate()

@@ -287,7 +287,10 @@ class DPISimulator(nn.Module):
 
     architecture = "dpi"
 
-    def __init__(self, config: DPIConfig, metadata: Metadata, input_sequence_length: int = 6):
+    def __init__(self, config: DPIConfig, metadata: Metadata, connectivity_radius: float,
+                 input_sequence_length: int = 6):
+        """`connectivity_radius`: the resolved `model.connectivity_radius` (the dataset's R unless set), scaled by
+        `dpi.radius_scale`."""
         super().__init__()
         config.validate()
         self.config = config
@@ -299,7 +302,7 @@ class DPISimulator(nn.Module):
         self.uses_edges = True
         self.neighbour_backend, self.self_edges = config.neighbour_backend, config.self_edges
         self.dim = metadata.dim
-        self.radius = float(config.radius_scale * metadata.default_connectivity_radius)
+        self.radius = float(config.radius_scale * connectivity_radius)
 
         def buffer(name: str, values: list[float] | list[list[float]]) -> None:
             self.register_buffer(name, torch.tensor(values, dtype=torch.float32))

@@ -195,8 +195,11 @@ def test_geometry_weights_are_window_times_partition_of_unity() -> None:
 GRAVITY = [0.0, -1e-3]
 
 
+RADIUS = 0.1  # the datasets' R, which the registry's builder passes resolved (model.connectivity_radius)
+
+
 def metadata(walls: bool = False, dim: int = 2) -> Metadata:
-    return Metadata(bounds=[[0.0, 1.0]] * dim, sequence_length=10, default_connectivity_radius=0.1, dim=dim, dt=1.0,
+    return Metadata(bounds=[[0.0, 1.0]] * dim, sequence_length=10, default_connectivity_radius=RADIUS, dim=dim, dt=1.0,
                     vel_mean=[0.0] * dim, vel_std=[1e-2] * dim, acc_mean=[0.0] * dim, acc_std=[1e-3] * dim,
                     particle_types={"water": WATER, "kinematic": KINEMATIC}, walls=walls,
                     gravity=(GRAVITY + [0.0])[:dim] if dim == 3 else GRAVITY)
@@ -217,7 +220,7 @@ def scene(n_fluid: int = 24, n_kinematic: int = 8, frames: int = 4, seed: int = 
 
 
 def test_config_resolves_dataset_defaults() -> None:
-    sim = CConvSimulator(CConvConfig(), metadata(walls=True))
+    sim = CConvSimulator(CConvConfig(), metadata(walls=True), RADIUS)
     assert sim.radius == 0.1 and sim.config.radius == 0.1 and sim.config.wall_features is True
     assert sim.config.gravity == GRAVITY and sim.uses_edges and sim.dim == 2
     assert sim.bounds.shape == (2, 2)
@@ -228,7 +231,7 @@ def test_config_resolves_dataset_defaults() -> None:
 
 def test_free_fall_with_zero_network_is_exact() -> None:
     torch.manual_seed(0)
-    sim = CConvSimulator(CConvConfig(), metadata())
+    sim = CConvSimulator(CConvConfig(), metadata(), RADIUS)
     for p in sim.network.parameters():
         p.data.zero_()
     window, types = scene()
@@ -239,7 +242,7 @@ def test_free_fall_with_zero_network_is_exact() -> None:
 
 def test_translation_invariance() -> None:
     torch.manual_seed(0)
-    sim = CConvSimulator(CConvConfig(), metadata(walls=True))
+    sim = CConvSimulator(CConvConfig(), metadata(walls=True), RADIUS)
     window, types = scene()
     shift = torch.tensor([0.13, -0.07])
     with torch.no_grad():
@@ -254,7 +257,7 @@ def test_translation_invariance() -> None:
 def test_unrolled_loss_is_differentiable_and_learns_free_fall() -> None:
     torch.manual_seed(0)
     config = CConvConfig()
-    sim = CConvSimulator(config, metadata())
+    sim = CConvSimulator(config, metadata(), RADIUS)
     window, types = scene(frames=4)  # W = 2 inputs, S = 2 unrolled targets
     optimiser = torch.optim.Adam(sim.parameters(), lr=config.learning_rate, eps=config.adam_eps)
     losses = []
@@ -275,7 +278,7 @@ def test_training_noise_corrupts_the_inputs_and_moves_the_targets() -> None:
     """The paper swept CConv's training noise (App. D.1): the GNS's random-walk noise on the input frames, the
     targets moved by (1 - position_correction) times the last frame's noise."""
     torch.manual_seed(0)
-    sim = CConvSimulator(CConvConfig(), metadata())  # no walls: nothing is tied to absolute positions
+    sim = CConvSimulator(CConvConfig(), metadata(), RADIUS)  # no walls: nothing is tied to absolute positions
     window, types = scene(n_kinematic=0, frames=5)  # W = 3 inputs, S = 2 unrolled targets
     with torch.no_grad():
         clean = sim.unrolled_loss(window, types)
@@ -294,7 +297,7 @@ def test_training_noise_corrupts_the_inputs_and_moves_the_targets() -> None:
 
 def test_kinematic_particles_are_only_obstacle_sources() -> None:
     torch.manual_seed(0)
-    sim = CConvSimulator(CConvConfig(), metadata())
+    sim = CConvSimulator(CConvConfig(), metadata(), RADIUS)
     window, types = scene(frames=5)  # W = 3, S = 2
     fluid = types != KINEMATIC
     with torch.no_grad():
@@ -327,7 +330,7 @@ def test_kinematic_particles_are_only_obstacle_sources() -> None:
 
 def test_batch_bf16_and_3d() -> None:
     torch.manual_seed(0)
-    sim = CConvSimulator(CConvConfig(), metadata(walls=True))
+    sim = CConvSimulator(CConvConfig(), metadata(walls=True), RADIUS)
     window, types = scene(frames=4)
     n = window.shape[0]
     two = torch.cat([window, window + 0.01])
@@ -342,7 +345,7 @@ def test_batch_bf16_and_3d() -> None:
         half = sim.predict_next_position(window[:, :2], types, precision="bf16")
         assert half.dtype == torch.float32
         torch.testing.assert_close(half, single, rtol=0, atol=1e-4)
-    sim3 = CConvSimulator(CConvConfig(), metadata(walls=True, dim=3))
+    sim3 = CConvSimulator(CConvConfig(), metadata(walls=True, dim=3), RADIUS)
     assert sim3.network.conv0_fluid.kernel.shape == (4, 4, 4, 1 + 3 + 6, 32)
     pos = torch.rand(40, 1, 3) * 0.3 + 0.35
     w3 = torch.cat([pos, pos + 1e-3, pos + 2e-3, pos + 3e-3 + torch.tensor([0.0, -1e-3, 0.0])], dim=1)

@@ -34,8 +34,11 @@ def one_thread():
     torch.set_num_threads(before)
 
 
+RADIUS = 0.15  # the datasets' R, which the registry's builder passes resolved (model.connectivity_radius)
+
+
 def metadata(dim: int) -> Metadata:
-    return Metadata(bounds=[[0.0, 1.0]] * dim, sequence_length=10, default_connectivity_radius=0.15, dim=dim, dt=1.0,
+    return Metadata(bounds=[[0.0, 1.0]] * dim, sequence_length=10, default_connectivity_radius=RADIUS, dim=dim, dt=1.0,
                     vel_mean=[0.0] * dim, vel_std=[1e-2] * dim, acc_mean=[0.0] * dim, acc_std=[1e-3] * dim,
                     particle_types={"rigid": RIGID, "water": WATER, "kinematic": KINEMATIC})
 
@@ -163,7 +166,7 @@ def test_a_cube_gets_eight_roots_of_its_octants_and_all_root_pairs() -> None:
 
 
 def test_graph_relations_follow_the_authors() -> None:
-    sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
+    sim = DPISimulator(DPIConfig(**SMALL), metadata(3), RADIUS)
     window, types = toy_window(3)
     window[types == WATER] -= 0.05  # some water within reach of the block
     graph = sim.graph(window, types, None, None, window[:, 0])
@@ -222,7 +225,7 @@ def test_propagation_is_the_relation_propagator_on_the_concatenation() -> None:
 @pytest.mark.parametrize("dim, head", [(2, "transform"), (3, "transform"), (3, "velocity")])
 def test_forward_pass_predicts_a_rigid_block(dim: int, head: str) -> None:
     torch.manual_seed(0)
-    sim = DPISimulator(DPIConfig(**SMALL, rigid_head=head), metadata(dim))
+    sim = DPISimulator(DPIConfig(**SMALL, rigid_head=head), metadata(dim), RADIUS)
     window, types = toy_window(dim)
     with torch.no_grad():
         next_position = sim.predict_next_position(window, types)
@@ -239,7 +242,7 @@ def test_forward_pass_predicts_a_rigid_block(dim: int, head: str) -> None:
 
 def test_several_bodies_each_stay_rigid() -> None:
     torch.manual_seed(1)
-    sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
+    sim = DPISimulator(DPIConfig(**SMALL), metadata(3), RADIUS)
     (w0, t0), (w1, t1) = toy_window(3, seed=0), toy_window(3, seed=1)
     window, types = torch.cat([w0, w1 + 0.02]), torch.cat([t0, t1])
     batch = torch.cat([torch.zeros(len(t0)), torch.ones(len(t1))]).long()
@@ -260,7 +263,7 @@ def test_several_bodies_each_stay_rigid() -> None:
 
 def test_bf16_and_precomputed_edges() -> None:
     torch.manual_seed(2)
-    sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
+    sim = DPISimulator(DPIConfig(**SMALL), metadata(3), RADIUS)
     window, types = toy_window(3)
     with torch.no_grad():
         reference = sim.predict_next_position(window, types)
@@ -279,7 +282,7 @@ def test_bf16_and_precomputed_edges() -> None:
 
 def test_training_loss_decreases() -> None:
     torch.manual_seed(0)
-    sim = DPISimulator(DPIConfig(**TINY), metadata(2))
+    sim = DPISimulator(DPIConfig(**TINY), metadata(2), RADIUS)
     trajectory, types = toy_trajectory(2, frames=8)
     starts = [0, 3, 5]
     window = torch.cat([trajectory[s:s + 2].transpose(0, 1) for s in starts])
@@ -301,7 +304,7 @@ def test_training_loss_decreases() -> None:
 
 def test_training_loss_ignores_kinematic_particles() -> None:
     torch.manual_seed(0)
-    sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
+    sim = DPISimulator(DPIConfig(**SMALL), metadata(3), RADIUS)
     window, types = toy_window(3, width=3)
     target = window[:, -1] + 0.01
     noise = torch.zeros_like(window)
@@ -317,7 +320,7 @@ def test_training_loss_ignores_kinematic_particles() -> None:
 
 def test_predicted_displacement_is_not_translation_invariant() -> None:
     torch.manual_seed(0)
-    sim = DPISimulator(DPIConfig(**SMALL), metadata(3))
+    sim = DPISimulator(DPIConfig(**SMALL), metadata(3), RADIUS)
     window, types = toy_window(3)
     shift = torch.tensor([0.1, -0.05, 0.07])
     with torch.no_grad():
@@ -338,7 +341,7 @@ def test_defaults_are_the_authors_boxbath_settings() -> None:
     assert (c.pstep, c.root_pstep, c.roots_per_rigid_body, c.n_his) == (2, 2, 8, 0)
     assert (c.nf_relation, c.nf_particle, c.nf_effect) == (300, 200, 200)
     assert Config().train.learning_rate == 1e-4  # their Adam rate; their 2 accumulated samples: batch_size = 2
-    sim = DPISimulator(c, metadata(3))
+    sim = DPISimulator(c, metadata(3), RADIUS)
     assert sim.radius == pytest.approx(0.15) and sim.uses_edges and sim.bounds.shape == (3, 2)
     assert (sim.architecture, sim.input_sequence_length, sim.neighbour_backend, sim.self_edges) == (
         "dpi", 6, "scipy", True)
@@ -352,4 +355,5 @@ def test_bad_configs_are_refused(bad: dict) -> None:
     (key, value), = bad.items()
     with pytest.raises(ConfigError):
         config = load_config(None, [f"{key}={value!r}".replace("'", '"')])
-        DPISimulator(config.dpi, metadata(3))  # n_his beyond the window is caught by the simulator
+        # n_his beyond the window is caught by the simulator
+        DPISimulator(config.dpi, metadata(3), RADIUS)
