@@ -45,7 +45,12 @@ from gns_bench.report.collect import (  # noqa: E402
     mean_std,
     stress_sweeps,
 )
-from gns_bench.report.reference import baseline_rollout_mse, display_name, domain_reference  # noqa: E402
+from gns_bench.report.reference import (  # noqa: E402
+    baseline_failures,
+    baseline_rollout_mse,
+    display_name,
+    domain_reference,
+)
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
@@ -402,25 +407,22 @@ def kept_rigidity(previous: dict, name: str, row: RunRow | None) -> dict[str, li
     return kept if kept and row is not None and kept.get("run_id") == row.run_id else None
 
 
-# Where the paper shows a baseline failing (Sec. 5.5): CConv's cube losing its shape on BOXBATH and its goop
-# blowing apart on GOOP. There every model's rollout of one test trajectory is drawn side by side.
-FAILURE_DOMAINS = ("boxbath", "goop")
 MISSING_ROLLOUTS = ("its run's rollouts are not in this MLflow store: a run known only from its committed summary "
                     "keeps its numbers, not its artifacts")
-FAILURE_WORDS = {"boxbath": "CConv lets the cube lose its shape, and DPI-Net keeps it rigid only by construction",
-                 "goop": "CConv's goop blows apart"}
 
 
 def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]], out_dir: Path,
                     previous: dict | None, stand_ins: dict[str, list[RunRow]] | None = None) -> tuple[list[str], dict]:
-    """For each of `FAILURE_DOMAINS` with runs: test trajectory 0 as the GNS and each baseline's best run rolled
-    it out (`<domain>_strip.png`: every model whose rollouts are here, the missing ones named), and on BOXBATH
-    the cube's rigidity drift of every model. Returns the lines and what was drawn, which the summary keeps:
-    when MLflow no longer holds the rollouts, the pictures the last report drew stand (`previous`, that
-    summary's record). `stand_ins`: per domain, the stress sweeps' runs whose rollouts stand in for the GNS's
-    when its own are gone (`gns_rollouts`)."""
+    """For each domain where the paper shows a baseline failing (`reference.baseline_failures`) with runs:
+    test trajectory 0 as the GNS and each baseline's best run rolled it out (`<domain>_strip.png`: every model
+    whose rollouts are here, the missing ones named), and where it holds a rigid body (BOXBATH's cube) every
+    model's rigidity drift. Returns the lines and what was drawn, which the summary keeps: when MLflow no longer
+    holds the rollouts, the pictures the last report drew stand (`previous`, that summary's record).
+    `stand_ins`: per domain, the stress sweeps' runs whose rollouts stand in for the GNS's when its own are gone
+    (`gns_rollouts`)."""
     lines, drawn = [], {}
-    for domain in FAILURE_DOMAINS:
+    for failure in baseline_failures():
+        domain = failure.domain
         here = [(s, rows, gns) for s, rows, gns in collected if s.domain == domain]
         if not here:
             continue
@@ -438,7 +440,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                        for name, rollouts in models.items() if not rollouts}
             if missing:
                 record["missing"] = missing
-            if domain == "boxbath":
+            if failure.rigidity:
                 # each model's curve from its rollouts here, else the one the last report kept of the same run
                 curves = {}
                 for key, rollouts in models.items():
@@ -449,7 +451,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                                         **({"drawn_from": gns_from} if key == "gns" and gns_from else {})}
                     elif (kept := kept_rigidity(before, name, row)) is not None:
                         curves[name] = kept
-                record["rigidity"] = rigidity_comparison(curves, out_dir / "boxbath_rigidity.png")
+                record["rigidity"] = rigidity_comparison(curves, out_dir / f"{domain}_rigidity.png")
                 if curves:
                     record["rigidity_curves"] = curves
                 kept_names = [name for name in record["rigidity"] if name in missing]
@@ -466,7 +468,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
         drawn[domain] = record
         name = display_name(domain)
         lines += [f"## {name}: the failure the paper shows", "",
-                  f"In the paper (Sec. 5.5) {FAILURE_WORDS[domain]}.", ""]
+                  f"In the paper (Sec. 5.5) {failure.words}.", ""]
         if record.get("gns_from"):
             lines += [f"The GNS in these pictures: {record['gns_from']}.", ""]
         if record.get("missing"):
@@ -477,7 +479,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
             lines += [f"Test trajectory 0, the ground truth above each model's rollout ({models_drawn}; each "
                       "baseline's best run), at the same steps; a panel after a model's rollout was stopped by a "
                       "health monitor says so.", "", f"![{name}: every model's rollout]({domain}_strip.png)", ""]
-        if record.get("rigidity") and (out_dir / "boxbath_rigidity.png").is_file():
+        if record.get("rigidity") and (out_dir / f"{domain}_rigidity.png").is_file():
             lines += ["The cube's rigidity drift, mean over the test rollouts (RMS change of its pairwise distances "
                       "since the rollout began, relative to their RMS): the GNS has to learn rigidity, DPI-Net has it "
                       "built in (a rigid projection and root nodes), CConv neither."
@@ -489,7 +491,7 @@ def failure_section(collected: list[tuple[SweepSpec, list[RunRow], list[RunRow]]
                                 record.get("rigidity_curves", {}).items()
                                 if curve.get("drawn_from") and name in record.get("rigidity_kept", [])),
                       "",
-                      "![rigidity](boxbath_rigidity.png)", ""]
+                      f"![rigidity]({domain}_rigidity.png)", ""]
     return lines, drawn
 
 
@@ -514,7 +516,7 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
              *("| " + " | ".join(comparison_row(s, rows, gns, compare)) + " |" for s, rows, gns in collected), "",
              *(verdict_lines(collected) if compare else []), *cost_section(collected, out_dir, measured)]
     stand_ins = {d: [r for s in stress_sweeps() if s.domain == d for r in collect(s, tier, reports_root)]
-                 for d in FAILURE_DOMAINS}
+                 for d in (failure.domain for failure in baseline_failures())}
     failures, drawn = failure_section(collected, out_dir, extras.get("failures"), stand_ins)
     lines += failures
     kept = {**({"failures": drawn} if drawn else {}), **({MEASURED: measured} if measured else {})}

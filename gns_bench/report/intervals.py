@@ -32,6 +32,8 @@ class Interval:
         if not math.isfinite(self.estimate):
             return "—"
         fmt = f"{{:.{digits}g}}{suffix}"
+        if not (math.isfinite(self.low) and math.isfinite(self.high)):
+            return f"{fmt.format(self.estimate)} (no interval: one value)"
         return f"{fmt.format(self.estimate)} [{fmt.format(self.low)}, {fmt.format(self.high)}]"
 
 

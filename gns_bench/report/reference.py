@@ -62,6 +62,21 @@ def domain_reference(domain_id: str) -> DomainReference | None:
                            paper.sequence_length, paper.one_step_mse, paper.rollout_mse, cconv)
 
 
+@dataclass(frozen=True)
+class BaselineFailure:
+    """A domain where the paper shows a baseline failing (Sec. 5.5; `[baseline_failures]`)."""
+
+    domain: str
+    words: str  # what the paper saw, as a clause
+    rigidity: bool  # the domain holds a rigid body whose rigidity drift is drawn
+
+
+def baseline_failures() -> tuple[BaselineFailure, ...]:
+    """Every `[baseline_failures.<domain>]` entry, in the file's order."""
+    return tuple(BaselineFailure(domain, str(entry["words"]), bool(entry["rigidity"]))
+                 for domain, entry in paper_reference()["baseline_failures"].items())
+
+
 def display_name(domain_id: str) -> str:
     """The domain as the paper names it (Table 1), or its id where the paper lacks it."""
     ref = domain_reference(domain_id)

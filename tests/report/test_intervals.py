@@ -34,6 +34,8 @@ def test_one_seed_a_side_is_unbounded():
     got = ratio_interval([1.0], [2.0, 3.0])
     assert got.estimate == pytest.approx(1 / math.sqrt(6.0))
     assert got.high == math.inf and got.contains(1.0)
+    assert got.text(2, "x") == "0.41x (no interval: one value)"  # never "[0, inf]" in a table
+    assert ratio_interval([1.0, 1.1], [2.0, 3.0]).text(2, "x").endswith("]")
 
 
 def test_mean_interval_is_students_t():
