@@ -283,6 +283,9 @@ class EvalConfig:
     stop_on: list[MonitorName] = field(default_factory=lambda: ["non_finite", "energy_blowup",
                                                                 "density_collapse"])
     neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
+    # Rollouts skip what kinematic particles would cost beyond their encoding and their messages out (their
+    # positions come from the data): the decoder, the last node update, the last block's messages into them.
+    moving_only: bool = True
     precision: Literal["fp32", "bf16", "fp64"] = "fp32"  # bf16: autocast the network; fp64: a reference
     # torch.compile the network for rollouts, its weights frozen as constants (model/precision.py
     # `compiled_for_inference`): about 15 s of compiling a process; the same function up to float rounding.

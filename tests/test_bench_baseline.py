@@ -63,6 +63,12 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
     assert "the square-GEMM rate at its start and end, fp32" in readme
     with Image.open(tmp_path / "bench_scaling.png") as image:
         assert image.size[0] > 300
+    skips = saved["skips"]  # the kinematic skip: every synthetic share, both precisions, the same predictions
+    assert {(r["kinematic_share"] > 0.1, r["precision"]) for r in skips} == {
+        (k, p) for k in (False, True) for p in ("fp32", "bf16")}
+    assert all(r["full_s"] > 0 and r["moving_only_s"] > 0 for r in skips)
+    assert all(r["max_difference"] <= (1e-4 if r["precision"] == "fp32" else 5e-2) for r in skips)
+    assert "## Skipping kinematic particles' work in a rollout step" in readme
 
 
 def test_a_run_whose_machine_slowed_down_says_so_and_a_steady_one_says_it_held() -> None:

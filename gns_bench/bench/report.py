@@ -214,6 +214,16 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
                                          ("step_s", "step s", ".3f"), ("peak_memory_mb", "peak MB", ".0f"),
                                          ("process_baseline_mb", "MB before the model", ".0f"),
                                          ("error", "error", "")])
+    if results.get("skips"):
+        lines += ["", "## Skipping kinematic particles' work in a rollout step (`eval.moving_only`)", "",
+                  "The forward with every particle decoded against the predicted ones alone (their last node "
+                  "update, the last block's messages into them, the decoder); the largest difference of a "
+                  "predicted particle's normalised acceleration between the two.", ""]
+        lines += _table(results["skips"], [("scene", "scene", ""), ("precision", "precision", ""),
+                                           ("particles", "N", "d"), ("kinematic_share", "kinematic", ".0%"),
+                                           ("edges", "edges", "d"), ("full_s", "all decoded s", ".4f"),
+                                           ("moving_only_s", "moving only s", ".4f"), ("speedup", "speed-up", ".2f"),
+                                           ("max_difference", "largest difference", ".1e")])
     figure = _plot(results, out_dir / "bench_scaling.png")
     lines += ["", f"![scaling]({figure.name})", ""]
     readme = out_dir / "README.md"

@@ -225,7 +225,8 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         run_hooks = (*hooks, lambda state, bar=steps_bar: bar.update(1), *monitors)
         started = time.perf_counter()
         result = rollout(rolled_out_by, traj, config.rollout_steps, run_hooks, device,
-                         neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds)
+                         neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds,
+                         moving_only=config.moving_only)
         rollout_seconds = time.perf_counter() - started
         steps_bar.set_description(f"trajectory {index} one-step and distributional metrics")
         if result.stopped_by is not None:

@@ -35,11 +35,13 @@ Hook = Callable[[RolloutState], None]
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
             hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
             neighbour_skin: float = 0.0, precision: str = "fp32", reuse_static_edges: bool = True,
-            bounds: Sequence[Sequence[float]] | None = None) -> RolloutResult:
+            bounds: Sequence[Sequence[float]] | None = None, moving_only: bool = True) -> RolloutResult:
     """Roll out from the first W frames; every option below gives the same edges as a fresh search.
 
     neighbour_skin > 0: Verlet neighbour lists, rebuilt only when particles moved skin / 2.
     reuse_static_edges: edges among particles that never move (fixed boundaries) are found once.
+    moving_only: a simulator that offers it (`predicts_moving_only`) skips the work of the kinematic particles,
+    whose positions come from the data (the same positions up to the rounding of smaller matrix products).
     precision "bf16" / "fp64": autocast the network to bf16, or run it in float64 (a reference).
     bounds: the scene's walls, when they are not the training data's (a larger arena).
     Inflow (`trajectory.birth_step`): a particle enters the graph at its birth frame with the window of
@@ -68,6 +70,7 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     elif reuse_static_edges and simulator.uses_edges and bool(static.any()) and not bool(static.all()):
         neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.neighbour_backend,
                                            simulator.self_edges)
+    skip = {"moving_only": True} if moving_only and getattr(simulator, "predicts_moving_only", False) else {}
     with network_dtype(simulator, dtype):
         for step in range(num_steps):
             frame = w + step
@@ -76,14 +79,14 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
             if birth is None:
                 edges = neighbours(window[:, -1]) if neighbours is not None else None
                 next_position = simulator.predict_next_position(window, particle_type, None, step_context, edges,
-                                                                scene_bounds, precision)
+                                                                scene_bounds, precision, **skip)
                 next_position = torch.where(kinematic, truth[frame], next_position)
             else:
                 present = birth <= frame - 1  # in the scene at the last input frame
                 index = present.nonzero()[:, 0]
                 sub_window = window.index_select(0, index)
                 moved = simulator.predict_next_position(sub_window, particle_type.index_select(0, index), None,
-                                                        step_context, None, scene_bounds, precision)
+                                                        step_context, None, scene_bounds, precision, **skip)
                 next_position = truth[frame].clone()  # absent and kinematic particles follow the data
                 keep = ~kinematic[index, 0]
                 next_position[index[keep]] = moved[keep]

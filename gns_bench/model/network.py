@@ -124,6 +124,27 @@ class InteractionNetwork(nn.Module):
             new_globals = globals_ + self.global_mlp(torch.cat([globals_, mean_nodes, mean_edges], dim=1))
         return new_nodes, new_edges, new_globals
 
+    def nodes_of(self, wanted: torch.Tensor, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
+                 globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None) -> torch.Tensor:
+        """The updated latents [P, L] of the nodes `wanted` (indices [P]) alone, as the last block of
+        the processor needs them: only the edges into those nodes carry messages, no edge or global is
+        updated. The same numbers as `forward`'s rows (sums over the same edges in the same order); the
+        matrix products, on fewer rows, may round differently."""
+        into = torch.zeros(nodes.shape[0], dtype=torch.bool, device=nodes.device)
+        into[wanted] = True
+        kept = into.index_select(0, edge_index[1]).nonzero()[:, 0]
+        sub_index, sub_edges = edge_index.index_select(1, kept), edges.index_select(0, kept)
+        node_globals = edge_globals = None
+        if self.global_latent:
+            node_globals = globals_.index_select(0, node_graph)
+            edge_globals = node_globals.index_select(0, sub_index[1])
+        messages = self.edge_update(nodes, sub_edges, sub_index, edge_globals)
+        summed = messages if self.aggregate_messages else sub_edges + messages
+        aggregated = aggregate(summed, sub_index[1], nodes.shape[0]).index_select(0, wanted)
+        own = nodes.index_select(0, wanted)
+        node_inputs = [own, aggregated] + ([node_globals.index_select(0, wanted)] if self.global_latent else [])
+        return own + self.node_mlp(torch.cat(node_inputs, dim=1))
+
 
 class EncodeProcessDecode(nn.Module):
     def __init__(self, node_in: int, edge_in: int, out_size: int, *, latent_size: int = 128,
@@ -171,10 +192,13 @@ class EncodeProcessDecode(nn.Module):
 
     def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor | None, edge_index: torch.Tensor,
                 node_graph: torch.Tensor | None = None, num_graphs: int = 1,
-                global_features: torch.Tensor | None = None) -> torch.Tensor:
+                global_features: torch.Tensor | None = None, outputs: torch.Tensor | None = None) -> torch.Tensor:
+        """Decoded outputs [N, out] of every node, or [P, out] of the nodes `outputs` (indices [P]) alone: the
+        last block then updates only those nodes from the edges into them, and the decoder reads only them
+        (`InteractionNetwork.nodes_of`)."""
         nodes = self.node_encoder(node_features)
         if not self.schedule:
-            return self.decoder(nodes)
+            return self.decoder(nodes if outputs is None else nodes.index_select(0, outputs))
         edges = self.edge_encoder(edge_features)
         globals_ = None
         if self.global_latent:
@@ -182,7 +206,11 @@ class EncodeProcessDecode(nn.Module):
                 globals_ = self.global_encoder(global_features)
             else:
                 globals_ = self.global_constant.expand(num_graphs, -1)
-        for step, index in enumerate(self.schedule):
+        schedule = self.schedule if outputs is None else self.schedule[:-1]
+        for step, index in enumerate(schedule):
             nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph,
                                                            update_globals=step < len(self.schedule) - 1)
+        if outputs is not None:
+            nodes = self.processor[self.schedule[-1]].nodes_of(outputs, nodes, edges, edge_index, globals_,
+                                                               node_graph)
         return self.decoder(nodes)

@@ -88,6 +88,9 @@ class LearnedSimulator(nn.Module):
 
     # What rollouts, evaluation and monitors read of any simulator (GNS, CConv, DPI alike).
     architecture = "gns"
+    # Optional (rollouts ask with getattr): `predict_next_position(..., moving_only=True)` skips the work
+    # of particles whose predictions the caller overwrites (kinematic ones).
+    predicts_moving_only = True
 
     @property
     def input_sequence_length(self) -> int:
@@ -118,18 +121,30 @@ class LearnedSimulator(nn.Module):
 
     def forward(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
                 context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None,
-                bounds: torch.Tensor | None = None) -> torch.Tensor:
+                bounds: torch.Tensor | None = None, moving_only: bool = False) -> torch.Tensor:
         """Normalised acceleration [N, D] for a window [N, W, D] of positions.
 
         batch [N]: graph index per particle (None: one graph); context [B, C]: raw global context per
         graph; edge_index: precomputed edges for the window's last positions (searched when None);
         bounds [D, 2]: the scene's walls when they differ from the training data's (a larger arena).
+        moving_only: decode only the particles that are predicted (not kinematic): kinematic ones get zero
+        acceleration (a constant-velocity step), which callers overwrite with the data. Their decoder and
+        last node update, and the last block's messages into them, are skipped (`EncodeProcessDecode`).
         """
         inputs = self.graph_inputs(window, particle_type, batch, context, edge_index, bounds)
+        outputs = None
+        if moving_only:
+            moving = ~kinematic_mask(particle_type)
+            if not bool(moving.all()):
+                outputs = moving.nonzero()[:, 0]
         out = self.network(inputs.nodes, inputs.edges, inputs.edge_index, inputs.batch, inputs.num_graphs,
-                           inputs.global_context)
+                           inputs.global_context, outputs)
         if self.config.gravity_bias:  # the network predicts the deviation from free fall
             out = out + (self.gravity - self.acc_mean) / self.acc_std
+        if outputs is not None:
+            decoded = out
+            out = (-self.acc_mean / self.acc_std).to(decoded.dtype).expand(window.shape[0], -1).clone()
+            out[outputs] = decoded  # the rest: the normalised zero acceleration
         return out
 
     def graph_inputs(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
@@ -170,7 +185,7 @@ class LearnedSimulator(nn.Module):
     def predict_next_position(self, window: torch.Tensor, particle_type: torch.Tensor,
                               batch: torch.Tensor | None = None, context: torch.Tensor | None = None,
                               edge_index: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
-                              precision: str = "fp32") -> torch.Tensor:
+                              precision: str = "fp32", moving_only: bool = False) -> torch.Tensor:
         """Next positions [N, D] of every particle, the one prediction path of evaluation and rollouts
         (callers put kinematic particles back from the data).
 
@@ -178,7 +193,7 @@ class LearnedSimulator(nn.Module):
         see `precision.network_dtype`); its output is cast back to the window's dtype, so denormalisation and
         the semi-implicit Euler step (Sec. 3.1) never round positions to bf16."""
         with autocast(window.device, precision):
-            normalised = self(window, particle_type, batch, context, edge_index, bounds)
+            normalised = self(window, particle_type, batch, context, edge_index, bounds, moving_only)
         return features.integrate(window, self.denormalise_acceleration(normalised.to(window.dtype)))
 
 

@@ -1,0 +1,109 @@
+"""What skipping kinematic particles' work saves in a rollout step (`eval.moving_only`): the paper's model's
+forward on one graph with every particle decoded, and with only the predicted (non-kinematic) ones decoded,
+their last node update and the last block's messages into them alone (`EncodeProcessDecode`, `outputs`).
+
+Scenes: a synthetic 2D scene at the paper's density (about 15 neighbours within R) with a share of its particles
+kinematic, spread at random (a boundary's particles sit together in a real scene; the saving depends only on how
+many particles and the edges into them are skipped), and, given `--dataset`, the first frame window of each named
+dataset's first test trajectory as it is. Each row: time with and without, their ratio, and the largest
+difference of a predicted particle's acceleration (normalised units) between the two.
+
+    python -m gns_bench.bench.skips --out reports/bench/<machine>/ [--dataset data/waterramps-cpu-s0 ...]
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from gns_bench.bench.measure import Scene, build_model, synthetic_scene, timed
+from gns_bench.config import ModelConfig
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE
+from gns_bench.model.precision import autocast
+
+SHARES = (0.0, 0.25, 0.5)
+
+
+def with_kinematic_share(scene: Scene, share: float, seed: int = 0) -> Scene:
+    """`scene` with a random `share` of its particles made kinematic."""
+    g = torch.Generator().manual_seed(seed)
+    kinematic = torch.rand(scene.window.shape[0], generator=g) < share
+    types = torch.where(kinematic, KINEMATIC_PARTICLE_TYPE, scene.particle_type)
+    metadata = scene.metadata
+    metadata.particle_types = {**metadata.particle_types, "kinematic": KINEMATIC_PARTICLE_TYPE}
+    return Scene(scene.window, types, metadata)
+
+
+def dataset_scene(path: Path) -> tuple[str, Scene]:
+    """The first input window of `path`'s first test trajectory, as the rollout starts from it."""
+    from gns_bench.data.format import load_split, read_metadata
+
+    metadata = read_metadata(path)
+    trajectory = load_split(path, "test")[0]
+    w = ModelConfig().input_sequence_length
+    window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1).contiguous()
+    return path.name, Scene(window, torch.from_numpy(trajectory.particle_type), metadata)
+
+
+@torch.no_grad()
+def skip_row(name: str, scene: Scene, precision: str, repeats: int) -> dict[str, Any]:
+    device = torch.device("cpu")
+    model = build_model(ModelConfig(), scene, device).eval()
+    window, types = scene.window, scene.particle_type
+    edges = model.build_graph(window[:, -1])
+
+    def forward(moving_only: bool) -> torch.Tensor:
+        with autocast(device, precision):
+            return model(window, types, edge_index=edges, moving_only=moving_only)
+
+    full, skipped = timed(lambda: forward(False), repeats), timed(lambda: forward(True), repeats)
+    moving = types != KINEMATIC_PARTICLE_TYPE
+    difference = (forward(False).float() - forward(True).float())[moving].abs().max()
+    return {"scene": name, "precision": precision, "particles": int(window.shape[0]),
+            "kinematic_share": float((~moving).float().mean()), "edges": int(edges.shape[1]),
+            "full_s": full, "moving_only_s": skipped, "speedup": full / skipped,
+            "max_difference": float(difference)}
+
+
+def measure(particles: int = 2000, datasets: tuple[Path, ...] = (), repeats: int = 7) -> list[dict[str, Any]]:
+    scenes = [(f"synthetic, {share:.0%} kinematic", with_kinematic_share(synthetic_scene(particles, 2), share))
+              for share in SHARES] + [dataset_scene(path) for path in datasets]
+    return [skip_row(name, scene, precision, repeats) for name, scene in scenes for precision in ("fp32", "bf16")]
+
+
+def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
+    lines = [f"Rollout step's forward with every particle decoded against the predicted ones alone "
+             f"(`eval.moving_only`), median of repeats; {hardware}.", "",
+             "| scene | precision | particles | kinematic | edges | all decoded, ms | moving only, ms | speed-up | "
+             "largest difference (normalised acceleration) |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['precision']} | {r['particles']} | {r['kinematic_share']:.0%} | "
+                     f"{r['edges']} | {1e3 * r['full_s']:.1f} | {1e3 * r['moving_only_s']:.1f} | "
+                     f"{r['speedup']:.2f}x | {r['max_difference']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    from gns_bench.tracking import hardware_description
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--particles", type=int, default=2000)
+    parser.add_argument("--dataset", type=Path, nargs="*", default=[])
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args(argv)
+    rows = measure(args.particles, tuple(args.dataset), args.repeats)
+    text = markdown(rows, hardware_description("cpu"))
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "skips.md").write_text(text)
+    (args.out / "skips.json").write_text(json.dumps(rows, indent=1) + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
