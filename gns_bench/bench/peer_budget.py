@@ -230,8 +230,9 @@ def _scored(unit: Path) -> dict[str, Any] | None:
 def run_seed(study: Study, seed: int, log=print, sides: tuple[str, ...] | None = None) -> None:
     """One seed's units (`sides`, default all): the peer for `steps` steps; gns-bench's cpu-tier recipe for
     `steps` steps, and for the peer's wall time (its steps from its own measured rate, capped by
-    `train.max_wall_seconds`); and gns-bench trained as the peer trains (fp32, the paper's 5M-step decay, which
-    the cpu tier compresses into the run), which separates the implementation from the recipe. Each unit trains
+    `train.max_wall_seconds`); and gns-bench with some of the peer's recipe (`RECIPES`: all of it, which
+    separates the implementation from the recipe; with PyTorch's initial weights too; the tier's fp32 or its
+    decay alone, which separate the two departures of the tier from the paper). Each unit trains
     once (`trained.json`) and is scored under the current rule (`score.json`); the peer's unit runs first
     whatever `sides` says (the others need its time)."""
     from gns_bench.train.checkpoints import load_simulator
@@ -277,24 +278,24 @@ def run_seed(study: Study, seed: int, log=print, sides: tuple[str, ...] | None =
         log(f"seed {seed}: gns-bench for the peer's {budget:.0f} s (about {steps} steps at its rate)")
         ours("ours-time", resolve_for_dataset(domain_config(study.domain, study.sweeps_dir, seed, steps, budget),
                                               meta.default_connectivity_radius))
-    if "ours-as-peer" in wanted:
-        log(f"seed {seed}: gns-bench trained as the peer is, {study.steps} steps")
-        as_peer = config_from_dict(apply_overrides(base.to_dict(), [
-            "train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000"]),
-            "the peer's recipe")
-        ours("ours-as-peer", as_peer)
-    if "ours-torch-init" in wanted:  # the one setting left that the peer does differently: PyTorch's initial weights
-        log(f"seed {seed}: gns-bench trained as the peer is, PyTorch's initialisation, {study.steps} steps")
-        torch_init = config_from_dict(apply_overrides(base.to_dict(), [
-            "train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000",
-            "model.init=torch"]), "the peer's recipe and initialisation")
-        ours("ours-torch-init", torch_init)
+    for side, changes in RECIPES.items():  # gns-bench with some of the peer's recipe, N steps
+        if side in wanted:
+            log(f"seed {seed}: {SIDES[side]}")
+            ours(side, config_from_dict(apply_overrides(base.to_dict(), changes), SIDES[side]))
 
 
 SIDES = {"geo-steps": "geoelements/gns, N steps", "ours-steps": "gns-bench, N steps",
          "ours-time": "gns-bench, the peer's wall time",
          "ours-as-peer": "gns-bench as the peer trains (fp32, the paper's decay), N steps",
-         "ours-torch-init": "gns-bench as the peer trains, with PyTorch's initial weights, N steps"}
+         "ours-torch-init": "gns-bench as the peer trains, with PyTorch's initial weights, N steps",
+         "ours-fp32": "gns-bench, the cpu tier's recipe in fp32, N steps",
+         "ours-slow-decay": "gns-bench, the cpu tier's recipe with the paper's decay, N steps"}
+# The recipe's changes per side (over the domain's cpu tier): trained as the peer is (fp32, the paper's 5M-step
+# decay, which the tier compresses into the run); that with PyTorch's initial weights, the one setting left that
+# the peer does differently; and each of the tier's two departures from the paper's recipe alone.
+PEER_RECIPE = ["train.precision=fp32", "train.compile=false", "train.learning_rate_decay_steps=5000000"]
+RECIPES = {"ours-as-peer": PEER_RECIPE, "ours-torch-init": [*PEER_RECIPE, "model.init=torch"],
+           "ours-fp32": PEER_RECIPE[:2], "ours-slow-decay": PEER_RECIPE[2:]}
 HORIZONS = ((1, "MSE at rollout step 1"), (10, "MSE over rollout steps 1-10"), (100, "MSE over rollout steps 1-100"))
 
 
@@ -346,7 +347,11 @@ def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware:
               "|---|" + "---|" * len(compared)]
     for side, what in (("ours-steps", "equal steps"), ("ours-time", "equal wall time"),
                        ("ours-as-peer", "equal steps, the peer's recipe"),
-                       ("ours-torch-init", "equal steps, the peer's recipe and initialisation")):
+                       ("ours-torch-init", "equal steps, the peer's recipe and initialisation"),
+                       ("ours-fp32", "equal steps, the cpu tier's recipe in fp32"),
+                       ("ours-slow-decay", "equal steps, the cpu tier's recipe with the paper's decay")):
+        if not units[side]:
+            continue
         both = [*units[side].values(), *geo.values()]
         cells = []
         for key, _ in compared:
