@@ -121,6 +121,9 @@ class TrainConfig:
     # blocks back to the kernel every step); "system": the library's defaults, or GLIBC_TUNABLES as set.
     # "auto": keep, unless GLIBC_TUNABLES is set (the user chose). The run records what it used.
     allocator: Literal["auto", "keep", "system"] = "auto"
+    # Kinematic particles are not in the loss: skip their decoder, last node update and the last block's messages
+    # into them (as rollouts do, eval.moving_only). The same loss and gradients up to float rounding.
+    moving_only: bool = True
     # Stop at the first step after this much training time (seconds, over resumes; periodic evaluation not
     # counted). For budget studies, whose runs get equal time; tiers define runs by steps, so results do not
     # depend on the machine's speed.

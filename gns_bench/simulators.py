@@ -154,7 +154,7 @@ def _gns_loss(simulator, batch, position_noise, config, *, model=None, num_movin
     from gns_bench.train.losses import pushforward_unroll, training_loss
 
     return training_loss(simulator, batch, position_noise, config.train.position_correction, model, num_moving,
-                         world_size, precision, pushforward_unroll(config.train, step))
+                         world_size, precision, pushforward_unroll(config.train, step), config.train.moving_only)
 
 
 def _radius(config: Config) -> float:

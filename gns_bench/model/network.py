@@ -124,16 +124,14 @@ class InteractionNetwork(nn.Module):
             new_globals = globals_ + self.global_mlp(torch.cat([globals_, mean_nodes, mean_edges], dim=1))
         return new_nodes, new_edges, new_globals
 
-    def nodes_of(self, wanted: torch.Tensor, nodes: torch.Tensor, edges: torch.Tensor, edge_index: torch.Tensor,
-                 globals_: torch.Tensor | None = None, node_graph: torch.Tensor | None = None) -> torch.Tensor:
+    def nodes_of(self, wanted: torch.Tensor, into: torch.Tensor, nodes: torch.Tensor, edges: torch.Tensor,
+                 edge_index: torch.Tensor, globals_: torch.Tensor | None = None,
+                 node_graph: torch.Tensor | None = None) -> torch.Tensor:
         """The updated latents [P, L] of the nodes `wanted` (indices [P]) alone, as the last block of
-        the processor needs them: only the edges into those nodes carry messages, no edge or global is
-        updated. The same numbers as `forward`'s rows (sums over the same edges in the same order); the
-        matrix products, on fewer rows, may round differently."""
-        into = torch.zeros(nodes.shape[0], dtype=torch.bool, device=nodes.device)
-        into[wanted] = True
-        kept = into.index_select(0, edge_index[1]).nonzero()[:, 0]
-        sub_index, sub_edges = edge_index.index_select(1, kept), edges.index_select(0, kept)
+        the processor needs them: only the edges `into` them (indices, in edge order) carry messages, no edge or
+        global is updated. The same numbers as `forward`'s rows (sums over the same edges in the same order);
+        the matrix products, on fewer rows, may round differently."""
+        sub_index, sub_edges = edge_index.index_select(1, into), edges.index_select(0, into)
         node_globals = edge_globals = None
         if self.global_latent:
             node_globals = globals_.index_select(0, node_graph)
@@ -192,10 +190,12 @@ class EncodeProcessDecode(nn.Module):
 
     def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor | None, edge_index: torch.Tensor,
                 node_graph: torch.Tensor | None = None, num_graphs: int = 1,
-                global_features: torch.Tensor | None = None, outputs: torch.Tensor | None = None) -> torch.Tensor:
+                global_features: torch.Tensor | None = None, outputs: torch.Tensor | None = None,
+                output_edges: torch.Tensor | None = None) -> torch.Tensor:
         """Decoded outputs [N, out] of every node, or [P, out] of the nodes `outputs` (indices [P]) alone: the
-        last block then updates only those nodes from the edges into them, and the decoder reads only them
-        (`InteractionNetwork.nodes_of`)."""
+        last block then updates only those nodes from `output_edges`, the edges into them (indices, in edge
+        order), and the decoder reads only them (`InteractionNetwork.nodes_of`). The caller finds both (data-
+        dependent shapes stay out of a compiled network)."""
         nodes = self.node_encoder(node_features)
         if not self.schedule:
             return self.decoder(nodes if outputs is None else nodes.index_select(0, outputs))
@@ -211,6 +211,6 @@ class EncodeProcessDecode(nn.Module):
             nodes, edges, globals_ = self.processor[index](nodes, edges, edge_index, globals_, node_graph,
                                                            update_globals=step < len(self.schedule) - 1)
         if outputs is not None:
-            nodes = self.processor[self.schedule[-1]].nodes_of(outputs, nodes, edges, edge_index, globals_,
-                                                               node_graph)
+            nodes = self.processor[self.schedule[-1]].nodes_of(outputs, output_edges, nodes, edges, edge_index,
+                                                               globals_, node_graph)
         return self.decoder(nodes)

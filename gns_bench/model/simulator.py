@@ -132,13 +132,15 @@ class LearnedSimulator(nn.Module):
         last node update, and the last block's messages into them, are skipped (`EncodeProcessDecode`).
         """
         inputs = self.graph_inputs(window, particle_type, batch, context, edge_index, bounds)
-        outputs = None
+        outputs = into = None
         if moving_only:
             moving = ~kinematic_mask(particle_type)
             if not bool(moving.all()):
                 outputs = moving.nonzero()[:, 0]
+                if inputs.edge_index is not None and self.network.uses_edges:
+                    into = moving.index_select(0, inputs.edge_index[1]).nonzero()[:, 0]
         out = self.network(inputs.nodes, inputs.edges, inputs.edge_index, inputs.batch, inputs.num_graphs,
-                           inputs.global_context, outputs)
+                           inputs.global_context, outputs, into)
         if self.config.gravity_bias:  # the network predicts the deviation from free fall
             out = out + (self.gravity - self.acc_mean) / self.acc_std
         if outputs is not None:

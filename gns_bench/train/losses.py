@@ -35,7 +35,7 @@ def pushforward_unroll(config: TrainConfig, step: int) -> int:
 
 @torch.no_grad()
 def pushed_forward(simulator: LearnedSimulator, window: torch.Tensor, batch: GraphBatch, unroll: int,
-                   precision: str) -> tuple[torch.Tensor, torch.Tensor]:
+                   precision: str, moving_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The (noisy) window rolled forward `unroll` steps by the model, without gradient (kinematic particles on
     their true paths), and the true position one step after it: `batch.future` holds the frames after the
     window (the sampler draws 1 + `train.pushforward_steps` of them)."""
@@ -43,7 +43,7 @@ def pushed_forward(simulator: LearnedSimulator, window: torch.Tensor, batch: Gra
     kinematic = kinematic_mask(batch.particle_type)[:, None]
     for k in range(unroll):
         predicted = simulator.predict_next_position(window, batch.particle_type, batch.batch, batch.context,
-                                                    precision=precision)
+                                                    precision=precision, moving_only=moving_only)
         predicted = torch.where(kinematic, future[:, k], predicted.to(window.dtype))
         window = torch.cat([window[:, 1:], predicted[:, None]], dim=1)
     return window, future[:, unroll]
@@ -52,7 +52,7 @@ def pushed_forward(simulator: LearnedSimulator, window: torch.Tensor, batch: Gra
 def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise: torch.Tensor,
                   position_correction: float, model: torch.nn.Module | None = None,
                   num_moving: int | None = None, world_size: int = 1, precision: str = "fp32",
-                  unroll: int = 0) -> torch.Tensor:
+                  unroll: int = 0, moving_only: bool = False) -> torch.Tensor:
     """Squared error of normalised accelerations, summed over dims, averaged over non-kinematic particles.
 
     `position_noise` is `step_inputs`' (kinematic rows zero: they follow the data, Sec. 4.3).
@@ -60,14 +60,17 @@ def training_loss(simulator: LearnedSimulator, batch: GraphBatch, position_noise
     Under data parallelism each process holds part of the batch: dividing by the whole batch's
     `num_moving` and multiplying by `world_size` makes the gradient average across processes equal the
     single-process gradient of the whole batch.
+    `moving_only`: kinematic particles' predictions, which the loss leaves out, are not computed
+    (`LearnedSimulator.forward`); the same loss and gradients up to float rounding.
     """
     moving = ~kinematic_mask(batch.particle_type)
     window, target_next = noisy_training_pair(batch.window, batch.target, position_noise, position_correction)
     if unroll:  # pushforward: the model's own predictions make the window, the truth stays the target
-        window, target_next = pushed_forward(simulator, window, batch, unroll, precision)
+        window, target_next = pushed_forward(simulator, window, batch, unroll, precision, moving_only)
     target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
     with autocast(window.device, precision):
-        predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context).float()
+        predicted = (model or simulator)(window, batch.particle_type, batch.batch, batch.context,
+                                         moving_only=moving_only).float()
     per_particle = (predicted - target).square().sum(dim=-1)
     denominator = max(int(moving.sum()) if num_moving is None else num_moving, 1)
     return (per_particle * moving).sum() * (world_size / denominator)
