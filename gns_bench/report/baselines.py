@@ -1,7 +1,7 @@
 """The baselines report, `reports/baselines/<tier>/README.md`: the paper's comparison of GNS with CConv and
 DPI-Net (Sec. 5.5, App. D.1) reproduced. Per comparison domain, the GNS (the domain sweep's run at the tier)
 beside the baseline's best run (`sweeps/baselines/`), ours and the paper's, with the ratio baseline / GNS for
-each; on BOXBATH the cube's rigidity drift for every model against the ground truth; on BOXBATH and GOOP one
+each (ours over the same rollout steps for both models); on BOXBATH the cube's rigidity drift for every model against the ground truth; on BOXBATH and GOOP one
 test trajectory drawn by every model side by side (the failures the paper shows: the cube losing its shape, the
 goop blowing apart)."""
 
@@ -51,12 +51,13 @@ from gns_bench.report.reference import (  # noqa: E402
     display_name,
     domain_reference,
 )
+from gns_bench.report.verdict import error_measure  # noqa: E402
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
-HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours) | against constant velocity, "
-          "same steps: GNS / baseline | rollout steps covered: GNS / baseline | GNS better here? | GNS (paper) "
-          "| CConv (paper) | CConv / GNS (paper) | MLflow runs |")
+HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours, same steps) | "
+          "against constant velocity, same steps: GNS / baseline | rollout steps covered: GNS / baseline | "
+          "GNS better here? | GNS (paper) | CConv (paper) | CConv / GNS (paper) | MLflow runs |")
 VERDICT_RULE = ("Computed from the table: *yes* when the GNS's rollout MSE against constant velocity's over the "
                 "same steps is lower and its rollouts ran at least as far before any monitor stopped them, *no* when "
                 "the baseline wins on both, *mixed* otherwise. One run a point at this tier, so a small difference "
@@ -182,13 +183,24 @@ def comparison_row(sweep: SweepSpec, rows: list[RunRow], gns_rows: list[RunRow],
     like = compare(gns_rows, best)
     return [f"{display_name(sweep.domain)} ({architecture})", fmt(gns),
             fmt(ours) + (f" (`{best.planned.name}`: {how})" if best else ""),
-            f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)})" if compare_runs and best and gns > 0 else "—",
+            same_steps_ratio(gns_rows, best) if compare_runs and best else "—",
             f"{times(like.gns)} / {times(like.baseline)}" if compare_runs else "—",
             f"{fmt(like.gns_steps)} / {fmt(like.baseline_steps)}" if compare_runs else "—",
             like.verdict if compare_runs else "—",
             fmt(ref.rollout_mse) if ref else "—", fmt(paper_cconv) if paper_cconv else "—",
             ratio(paper_cconv, ref.rollout_mse) if paper_cconv and ref else "—",
             run_ids_cell([r for r in [*gns_rows, *rows] if r.run_id])]
+
+
+def same_steps_ratio(gns_rows: list[RunRow], best: RunRow) -> str:
+    """The baseline's error over the GNS's mean, over the same rollout steps for every run (`verdict.error_measure`:
+    the whole rollout when none stopped, else the largest horizon all reached), with the steps named."""
+    key, words = error_measure([*gns_rows, best])
+    gns = mean_std([r.metric(key) for r in gns_rows if r.ok])[0] if key else math.nan
+    if not key or not gns > 0:
+        return "— (no horizon every rollout reached)"
+    ours = best.metric(key)
+    return f"{ratio(ours, gns)} ({fmt(ours)} / {fmt(gns)}, {words})"
 
 
 @dataclass(frozen=True)

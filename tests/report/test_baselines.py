@@ -13,8 +13,9 @@ import pytest
 
 from gns_bench.bench import costs as costs_module
 from gns_bench.evaluate.result import RolloutResult
-from gns_bench.report import baselines, report
+from gns_bench.report import baselines
 from gns_bench.report.collect import RunRow
+from gns_bench.report.verdict import error_measure, report
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 from gns_bench.tracking import RunRecord
@@ -49,11 +50,12 @@ def test_baselines_report_puts_the_best_baseline_run_beside_the_gns(tmp_path: Pa
     assert best.planned.axes == {"train.noise_std": 0.0} and how.startswith("the default setting")
     assert cells[2] == f"{best.metric('rollout_mse'):.3g} (`{best.planned.name}`: {how})"
     assert cells[3] == "—" and text.splitlines()[2].startswith("**Smoke tier")  # smoke compares nothing
-    gns = baselines.collect(domain, "smoke", tmp_path / "reports")[0].metric("rollout_mse")
     gns_rows = baselines.collect(domain, "smoke", tmp_path / "reports")
     compared = baselines.comparison_row(baseline, rows, gns_rows, compare_runs=True)
-    ratio = best.metric("rollout_mse") / gns
-    assert compared[3] == f"{ratio:.3g}x ({best.metric('rollout_mse'):.3g} / {gns:.3g})"
+    key, words = error_measure([*gns_rows, best])  # over the same steps for both: never each model's own
+    assert key and words and (key == "rollout_mse") == (words == "whole-rollout MSE")
+    ratio = best.metric(key) / gns_rows[0].metric(key)
+    assert compared[3] == f"{ratio:.3g}x ({best.metric(key):.3g} / {gns_rows[0].metric(key):.3g}, {words})"
     like = (baselines.relative_to_cv(gns_rows[0]), baselines.relative_to_cv(best))
     assert compared[4] == f"{like[0]:.3g}x / {like[1]:.3g}x"
     missing = baselines.comparison_row(baseline, [], gns_rows, compare_runs=True)  # the baseline not run yet
