@@ -365,7 +365,7 @@ def markdown(domain: str, units: dict[str, dict[int, dict[str, Any]]], hardware:
         lines.append(f"| gns-bench / geoelements/gns, {what} ({len(units[side])} vs {len(geo)} seeds) | "
                      + " | ".join(cells) + " |")
     gravity = {side: mean_interval([u["mean"]["rollout_gravity_ratio"] for u in units[side].values()])
-               for side in SIDES}
+               for side in SIDES if units[side]}
     lines += ["", "Gravity ratio along the rollout (1 = falls at g), mean over seeds with its 95% interval: "
               + "; ".join(f"{SIDES[side]} {interval.text(2)}" for side, interval in gravity.items()) + "."]
     return "\n".join(lines) + "\n"

@@ -275,7 +275,8 @@ def machine_benchmarks(root: Path) -> list[tuple[str, dict[str, Any]]]:
 
 def _extra_checks(folder: Path) -> list[str]:
     """What a machine's folder holds beside the benchmark: the GPU check's CUDA tests (JUnit XML) and its runs-at-
-    once timing (parallel.json), one line each, as measured (gns_bench/bench/device.py)."""
+    once timing (parallel.json, gns_bench/bench/device.py), the allocator rows (allocator.json,
+    gns_bench/bench/allocator.py) and the skip rows (skips.json, gns_bench/bench/skips.py), one line each."""
     import json
     import xml.etree.ElementTree as ElementTree
 
@@ -293,6 +294,22 @@ def _extra_checks(folder: Path) -> list[str]:
         lines.append(f"- {r['runs']} runs at once ({r['steps']} training steps each): {r['seconds_at_once']:.1f} s, "
                      f"against {r['seconds_one_at_a_time']:.1f} s one after another, a {r['speedup']:.2f}x speed-up "
                      f"([parallel.md]({folder.name}/parallel.md)).")
+    if (folder / "allocator.json").is_file():
+        rows = json.loads((folder / "allocator.json").read_text())
+        system = {r["precision"]: r for r in rows if r["setting"] == "system"}
+        kept = [(r, system[r["precision"]]) for r in rows if r["setting"] != "system" and r["precision"] in system]
+        lines.append("- Training step with glibc's malloc kept mapped against its defaults: " + "; ".join(
+            f"{r['precision']} {base['seconds_per_step'] / r['seconds_per_step']:.2f}x faster, minor page faults "
+            f"{base['minor_faults_per_step']:,.0f} -> {r['minor_faults_per_step']:,.0f} a step" for r, base in kept)
+            + f" ([allocator.md]({folder.name}/allocator.md)).")
+    if (folder / "skips.json").is_file():
+        rows = json.loads((folder / "skips.json").read_text())
+        skipping = [r for r in rows if r["kinematic_share"] > 0]
+        speedups, shares = [r["speedup"] for r in skipping], [r["kinematic_share"] for r in skipping]
+        lines.append("- Rollout forward with kinematic particles' work skipped (`eval.moving_only`): "
+                     f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%}"
+                     f" kinematic, largest difference {max(r['max_difference'] for r in rows):.1e} "
+                     f"([skips.md]({folder.name}/skips.md)).")
     return [*lines, ""] if lines else []
 
 

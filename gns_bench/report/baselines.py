@@ -1,9 +1,9 @@
 """The baselines report, `reports/baselines/<tier>/README.md`: the paper's comparison of GNS with CConv and
 DPI-Net (Sec. 5.5, App. D.1) reproduced. Per comparison domain, the GNS (the domain sweep's run at the tier)
 beside the baseline's best run (`sweeps/baselines/`), ours and the paper's, with the ratio baseline / GNS for
-each (ours over the same rollout steps for both models); on BOXBATH the cube's rigidity drift for every model against the ground truth; on BOXBATH and GOOP one
-test trajectory drawn by every model side by side (the failures the paper shows: the cube losing its shape, the
-goop blowing apart)."""
+each (ours over the same rollout steps for both models); where the domain holds a rigid body (BOXBATH's cube)
+every model's rigidity drift against the ground truth; where the paper shows a baseline failing (BOXBATH, GOOP)
+one test trajectory drawn by every model side by side (the cube losing its shape, the goop blowing apart)."""
 
 from __future__ import annotations
 

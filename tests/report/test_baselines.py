@@ -13,9 +13,9 @@ import pytest
 
 from gns_bench.bench import costs as costs_module
 from gns_bench.evaluate.result import RolloutResult
-from gns_bench.report import baselines
+from gns_bench.report import baselines, report
 from gns_bench.report.collect import RunRow
-from gns_bench.report.verdict import error_measure, report
+from gns_bench.report.verdict import error_measure
 from gns_bench.sweep.runner import run_sweep
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 from gns_bench.tracking import RunRecord
