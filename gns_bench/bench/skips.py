@@ -13,6 +13,7 @@ difference of a predicted particle's acceleration (normalised units) between the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -32,8 +33,8 @@ def with_kinematic_share(scene: Scene, share: float, seed: int = 0) -> Scene:
     g = torch.Generator().manual_seed(seed)
     kinematic = torch.rand(scene.window.shape[0], generator=g) < share
     types = torch.where(kinematic, KINEMATIC_PARTICLE_TYPE, scene.particle_type)
-    metadata = scene.metadata
-    metadata.particle_types = {**metadata.particle_types, "kinematic": KINEMATIC_PARTICLE_TYPE}
+    metadata = dataclasses.replace(scene.metadata, particle_types={**scene.metadata.particle_types,
+                                                                   "kinematic": KINEMATIC_PARTICLE_TYPE})
     return Scene(scene.window, types, metadata)
 
 
