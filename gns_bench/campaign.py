@@ -4,10 +4,10 @@
 (`sweep/campaigns.py` reads it). `run_campaign` runs what each lacks at a tier (finished runs skipped, those
 the committed run summaries under `reports_root` hold included; interrupted ones resumed from their
 checkpoints; runs another sweep trained recorded as shared), writes that sweep's report after each run while
-others remain and again as soon as it is done (unless it ran nothing new and its run summary holds every run)
-so results land while the rest runs, with the pages that read every sweep (domain table, stability, baselines,
-front page: `write_overviews`), and ends by writing every report. A sweep that fails is reported and the
-campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
+others remain and again as soon as it is done (unless it ran nothing new, its run summary holds every run and
+its report is newer than the summary) so results land while the rest runs, with the pages that read every sweep
+(domain table, stability, baselines, front page: `write_overviews`), and ends by writing every report. A sweep
+that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and the same command resumes it.
 """
 
 from __future__ import annotations
@@ -55,11 +55,10 @@ def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable
 
 def _report_partway(path: Path, tier: str, reports_root: Path, echo: Callable[[str], None],
                     outcome: RunOutcome, runs_left: int) -> None:
-    """A run of a sweep with more still to train finished: write the sweep's report now, so its run summary
-    holds the run and a later session resumes without it even when this machine's MLflow store and checkpoints
-    are lost (one was, with three finished runs of a five-run ablation: 2026-12-01). It costs one report's MLflow
-    reads and pictures, small against a run's 15-55 min. A report that fails here is said and left to the sweep's
-    end."""
+    """A run of a sweep with more still to train finished: write the sweep's report now, so its results can be
+    read (and committed) while the rest trains. The runner has already put the run into the sweep's summary;
+    this costs one report's MLflow reads and pictures, small against a run's 15-55 min. A report that fails
+    here is said and left to the sweep's end."""
     if outcome.status != "FINISHED" or runs_left == 0:
         return  # the sweep's end writes the report
     try:
@@ -90,13 +89,15 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
             results.append(SweepResult(sweep.name, [], f"{type(exc).__name__}: {exc}"))
             continue
         results.append(SweepResult(sweep.name, outcomes))
-        held = read_run_summary(summary_path(reports_root, sweep.name, tier))
-        if all(outcome.status == "SKIPPED" and outcome.name in held for outcome in outcomes):
-            # nothing ran or was recorded, and its report's run summary holds every run (a run that finished
-            # before an interrupted report still gets one): the report and the overviews stand as written, and
-            # the final rewrite below covers them. Rewriting them took about 20 s a sweep (MLflow reads, PNGs):
-            # a resumed campaign spent 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC, CPU family
-            # 25, model 17).
+        summary = summary_path(reports_root, sweep.name, tier)
+        held = read_run_summary(summary)
+        readme = summary.parent / "README.md"
+        if (all(outcome.status == "SKIPPED" and outcome.name in held for outcome in outcomes) and summary.is_file()
+                and readme.is_file() and readme.stat().st_mtime >= summary.stat().st_mtime):
+            # nothing ran or was recorded, its summary holds every run and its report was written after the
+            # summary last changed: the report and the overviews stand as written, and the final rewrite below
+            # covers them. Rewriting them took about 20 s a sweep (MLflow reads, PNGs): a resumed campaign spent
+            # 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC, CPU family 25, model 17).
             echo(f"  reports: unchanged, nothing new in {sweep.name}")
             continue
         for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:

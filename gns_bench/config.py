@@ -289,6 +289,9 @@ class EvalConfig:
     # Rollouts skip what kinematic particles would cost beyond their encoding and their messages out (their
     # positions come from the data): the decoder, the last node update, the last block's messages into them.
     moving_only: bool = True
+    # The encoder's latents of never-moving particles and of the edges among them, computed at a rollout's
+    # first step and reused (model/static_encodings.py): the same up to the rounding of smaller products.
+    static_encodings: bool = True
     precision: Literal["fp32", "bf16", "fp64"] = "fp32"  # bf16: autocast the network; fp64: a reference
     # torch.compile the network for rollouts, its weights frozen as constants (model/precision.py
     # `compiled_for_inference`): about 15 s of compiling a process; the same function up to float rounding.

@@ -240,8 +240,9 @@ def _curve_logger(run: tracking.Run, config: Config, dataset_dir: str | Path, de
     def log_curve_point(simulator: LearnedSimulator, step: int, train_seconds: float) -> None:
         evaluation = evaluate(simulator, valid, eval_config, device=device, progress=False, gravity=meta.gravity,
                               walls=meta.walls)
-        run.log_metrics({f"curve/{key}": evaluation.metrics[key] for key in CURVE_METRICS
-                         if key in evaluation.metrics} | {"curve/train_seconds": train_seconds}, step=step)
+        run.log_metrics({tracking.CURVE_PREFIX + key: evaluation.metrics[key] for key in CURVE_METRICS
+                         if key in evaluation.metrics} | {tracking.CURVE_PREFIX + "train_seconds": train_seconds},
+                        step=step)
 
     return log_curve_point
 

@@ -17,7 +17,9 @@ What the module must offer evaluation and rollouts: `dim`, `radius`, `bounds` (t
 `predict_next_position(window [N, W, D], particle_type [N], batch [N] or None, context [B, C] or None,
 edge_index or None, bounds or None, precision)` -> [N, D]. `examples/particle_mlp.py` is a complete one.
 Optional: `predicts_moving_only = True` says its `predict_next_position` also takes `moving_only=True`, and
-then may skip kinematic particles' work (rollouts overwrite their positions with the data; `eval.moving_only`).
+then may skip kinematic particles' work (rollouts overwrite their positions with the data; `eval.moving_only`);
+`caches_static_encodings = True`, that it takes `static_encodings=StaticEncodings(static)` and reuses the encoder's
+latents of never-moving particles across a rollout's steps (`eval.static_encodings`).
 
 This module sits above `model/` and `train/` (it names what both hold) and imports them only when a simulator
 is built or trained.

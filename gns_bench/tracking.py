@@ -23,6 +23,7 @@ from typing import Any
 
 DEFAULT_DB = "mlflow.db"
 DEFAULT_ARTIFACTS = "mlartifacts"
+CURVE_PREFIX = "curve/"  # metrics logged along training (train.eval_every), read back with their history
 
 
 def tracking_uri() -> str:
@@ -369,6 +370,14 @@ def get_run(run_id: str) -> RunRecord | None:
         return None
     return RunRecord(run.info.run_id, run.info.run_name or "", run.info.status, int(run.info.start_time or 0),
                      dict(run.data.params), dict(run.data.metrics), dict(run.data.tags))
+
+
+def run_record(run_id: str) -> RunRecord | None:
+    """`get_run` with the history of its `curve/` metrics (`CURVE_PREFIX`) read into `curves`."""
+    record = get_run(run_id)
+    if record is not None:
+        record.curves = {key: metric_history(run_id, key) for key in record.metrics if key.startswith(CURVE_PREFIX)}
+    return record
 
 
 def end_abandoned_run(run_id: str, reason: str) -> bool:

@@ -26,3 +26,20 @@ def isolated_mlflow(tmp_path_factory: pytest.TempPathFactory):
         os.environ.pop("MLFLOW_TRACKING_URI", None)
     else:
         os.environ["MLFLOW_TRACKING_URI"] = previous
+
+
+REPORTS = Path(__file__).resolve().parent.parent / "reports"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def committed_reports_untouched():
+    """No test writes into the repository's reports/ (the runner records runs under `--reports-root`,
+    `reports` by default): a test that forgets to point it elsewhere fails the session here."""
+    def files() -> dict[Path, int]:
+        return {p: p.stat().st_mtime_ns for p in REPORTS.rglob("*") if p.is_file()}
+
+    before = files()
+    yield
+    after = files()
+    changed = sorted(str(p.relative_to(REPORTS)) for p in after if before.get(p) != after[p])
+    assert not changed, f"tests wrote into reports/: {changed[:10]}"

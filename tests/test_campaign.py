@@ -83,8 +83,8 @@ def test_campaign_runs_in_order_goes_on_past_a_failure_and_resumes(sweeps: Path,
     assert reports.count(str(tmp_path / "reports" / "domain-one" / "smoke" / "README.md")) == 1, reports
     assert "  reports: unchanged, nothing new in domain-one" in said
 
-    # a run that finished before its report was written (the campaign stopped between the two) is skipped on
-    # resume, yet its sweep's report is written then, since the report's run summary lacks it
+    # a sweep whose summary was lost: its runs are skipped on resume, the runner records them again from
+    # MLflow, and the report, now older than its summary, is written again
     from gns_bench.sweep.summaries import summary_path
 
     summary_path(tmp_path / "reports", "domain-one", "smoke").unlink()

@@ -20,7 +20,7 @@ TARGET_SPEEDUP = 3.0
 TARGET_MEMORY_MB = 24 * 1024
 # Paper, App. C.6: GNS on a V100, share of the step spent outside the network.
 PAPER_SEARCH_SHARE = (0.558, 0.857)
-# Issue #22: the paper's model on WATERDROP (1,000 particles) faster a rollout step than the paper's V100
+# Target: the paper's model on WATERDROP (1,000 particles) faster a rollout step than the paper's V100
 # (App. C.6: 25-59 ms a step on its 2D domains), bf16, on these 2 cores.
 TARGET_ROLLOUT_DOMAIN, TARGET_ROLLOUT_S = "waterdrop", 0.025
 # The square-GEMM rate at a run's end may differ this much from its start before the run is called unsteady.
@@ -224,6 +224,16 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
                                            ("edges", "edges", "d"), ("full_s", "all decoded s", ".4f"),
                                            ("moving_only_s", "moving only s", ".4f"), ("speedup", "speed-up", ".2f"),
                                            ("max_difference", "largest difference", ".1e")])
+    if results.get("static_encodings"):
+        lines += ["", "## Reusing a fixed floor's encodings across rollout steps (`eval.static_encodings`)", "",
+                  "The forward (moving particles decoded alone) with every node and edge encoded against the "
+                  "floor's latents and those of the edges within it taken from the rollout's first step; the "
+                  "largest difference of a predicted particle's normalised acceleration between the two.", ""]
+        lines += _table(results["static_encodings"], [
+            ("scene", "scene", ""), ("precision", "precision", ""), ("particles", "N", "d"),
+            ("static_share", "static", ".0%"), ("edges", "edges", "d"), ("static_edge_share", "within floor", ".0%"),
+            ("encoded_s", "all encoded s", ".4f"), ("reused_s", "reused s", ".4f"), ("speedup", "speed-up", ".2f"),
+            ("max_difference", "largest difference", ".1e")])
     figure = _plot(results, out_dir / "bench_scaling.png")
     lines += ["", f"![scaling]({figure.name})", ""]
     readme = out_dir / "README.md"
@@ -309,6 +319,13 @@ def _extra_checks(folder: Path) -> list[str]:
         lines.append("- Rollout forward with kinematic particles' work skipped (`eval.moving_only`): "
                      f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%}"
                      f" kinematic, largest difference {max(r['max_difference'] for r in rows):.1e} "
+                     f"([skips.md]({folder.name}/skips.md)).")
+    if (folder / "static_encodings.json").is_file():
+        rows = json.loads((folder / "static_encodings.json").read_text())
+        speedups, shares = [r["speedup"] for r in rows], [r["static_share"] for r in rows]
+        lines.append("- Rollout forward with a fixed floor's encodings reused (`eval.static_encodings`): "
+                     f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%} static, "
+                     f"largest difference {max(r['max_difference'] for r in rows):.1e} "
                      f"([skips.md]({folder.name}/skips.md)).")
     return [*lines, ""] if lines else []
 

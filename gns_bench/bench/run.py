@@ -232,6 +232,8 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     results["inference"] = measure_inference(settings, device)
     print("the kinematic particles' skip...", flush=True)
     results["skips"] = skips.measure(settings.train_particles, repeats=settings.repeats)
+    print("the static encodings' reuse...", flush=True)
+    results["static_encodings"] = skips.measure_encodings(settings.train_particles, repeats=settings.repeats)
     print("scaling in particle count...", flush=True)
     results["scaling"] = measure_scaling(settings)
     results["steadiness"] = measure_steadiness(results["train"], settings, device)

@@ -1,12 +1,20 @@
-"""What skipping kinematic particles' work saves in a rollout step (`eval.moving_only`): the paper's model's
-forward on one graph with every particle decoded, and with only the predicted (non-kinematic) ones decoded,
-their last node update and the last block's messages into them alone (`EncodeProcessDecode`, `outputs`).
+"""What the rollout's skips save in a step: kinematic particles' work (`eval.moving_only`) and the encoder's
+latents of never-moving particles reused (`eval.static_encodings`).
 
-Scenes: a synthetic 2D scene at the paper's density (about 15 neighbours within R) with a share of its particles
-kinematic, spread at random (a boundary's particles sit together in a real scene; the saving depends only on how
-many particles and the edges into them are skipped), and, given `--dataset`, the first frame window of each named
-dataset's first test trajectory as it is. Each row: time with and without, their ratio, and the largest
-difference of a predicted particle's acceleration (normalised units) between the two.
+Kinematic particles' work: the paper's model's forward on one graph with every particle decoded, and with only
+the predicted (non-kinematic) ones decoded, their last node update and the last block's messages into them
+alone (`EncodeProcessDecode`, `outputs`). Scenes: a synthetic 2D scene at the paper's density (about 15
+neighbours within R) with a share of its particles kinematic, spread at random (the saving depends only on how
+many particles and the edges into them are skipped), and, given `--dataset`, the first frame window of each
+named dataset's first test trajectory as it is.
+
+Static encodings: the same forward (moving particles decoded alone, as rollouts run) with every node and edge
+encoded, and with a fixed floor's latents (its particles' and the edges among them) taken from the rollout's
+first step (`model/static_encodings.py`). Scene: the synthetic one with its lowest share of particles a floor
+that does not move, side by side as a boundary is (so most of its edges join floor particles).
+
+Each row: time with and without, their ratio, and the largest difference of a predicted particle's
+acceleration (normalised units) between the two.
 
     python -m gns_bench.bench.skips --out reports/bench/<machine>/ [--dataset data/waterramps-cpu-s0 ...]
 """
@@ -24,8 +32,10 @@ from gns_bench.bench.measure import Scene, build_model, synthetic_scene, timed
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE
 from gns_bench.model.precision import autocast
+from gns_bench.model.static_encodings import StaticEncodings
 
 SHARES = (0.0, 0.25, 0.5)
+FLOOR_SHARES = (0.25, 0.5)
 
 
 def with_kinematic_share(scene: Scene, share: float, seed: int = 0) -> Scene:
@@ -36,6 +46,20 @@ def with_kinematic_share(scene: Scene, share: float, seed: int = 0) -> Scene:
     metadata = dataclasses.replace(scene.metadata, particle_types={**scene.metadata.particle_types,
                                                                    "kinematic": KINEMATIC_PARTICLE_TYPE})
     return Scene(scene.window, types, metadata)
+
+
+def with_static_floor(scene: Scene, share: float) -> tuple[Scene, torch.Tensor]:
+    """`scene` with its lowest `share` of particles (by height) a kinematic floor at rest through the window,
+    and that floor's mask."""
+    n, w = scene.window.shape[:2]
+    floor = torch.zeros(n, dtype=torch.bool)
+    floor[scene.window[:, -1, 1].argsort()[: int(share * n)]] = True
+    window = scene.window.clone()
+    window[floor] = window[floor][:, -1:].expand(-1, w, -1)
+    types = torch.where(floor, KINEMATIC_PARTICLE_TYPE, scene.particle_type)
+    metadata = dataclasses.replace(scene.metadata, particle_types={**scene.metadata.particle_types,
+                                                                   "kinematic": KINEMATIC_PARTICLE_TYPE})
+    return Scene(window, types, metadata), floor
 
 
 def dataset_scene(path: Path) -> tuple[str, Scene]:
@@ -69,6 +93,37 @@ def skip_row(name: str, scene: Scene, precision: str, repeats: int) -> dict[str,
             "max_difference": float(difference)}
 
 
+@torch.no_grad()
+def encodings_row(name: str, scene: Scene, floor: torch.Tensor, precision: str, repeats: int) -> dict[str, Any]:
+    device = torch.device("cpu")
+    model = build_model(ModelConfig(), scene, device).eval()
+    window, types = scene.window, scene.particle_type
+    edges = model.build_graph(window[:, -1])
+    cache = StaticEncodings(floor)
+
+    def forward(cached: bool) -> torch.Tensor:
+        with autocast(device, precision):
+            return model(window, types, edge_index=edges, moving_only=True,
+                         static_encodings=cache if cached else None)
+
+    forward(True)  # a rollout's first step fills the cache
+    encoded, reused = timed(lambda: forward(False), repeats), timed(lambda: forward(True), repeats)
+    moving = ~floor
+    difference = (forward(False).float() - forward(True).float())[moving].abs().max()
+    among = floor[edges[0]] & floor[edges[1]]
+    return {"scene": name, "precision": precision, "particles": int(window.shape[0]),
+            "static_share": float(floor.float().mean()), "edges": int(edges.shape[1]),
+            "static_edge_share": float(among.float().mean()), "encoded_s": encoded, "reused_s": reused,
+            "speedup": encoded / reused, "max_difference": float(difference)}
+
+
+def measure_encodings(particles: int = 2000, repeats: int = 7) -> list[dict[str, Any]]:
+    scenes = [(f"synthetic, {share:.0%} a fixed floor", *with_static_floor(synthetic_scene(particles, 2), share))
+              for share in FLOOR_SHARES]
+    return [encodings_row(name, scene, floor, precision, repeats) for name, scene, floor in scenes
+            for precision in ("fp32", "bf16")]
+
+
 def measure(particles: int = 2000, datasets: tuple[Path, ...] = (), repeats: int = 7) -> list[dict[str, Any]]:
     scenes = [(f"synthetic, {share:.0%} kinematic", with_kinematic_share(synthetic_scene(particles, 2), share))
               for share in SHARES] + [dataset_scene(path) for path in datasets]
@@ -87,6 +142,20 @@ def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def encodings_markdown(rows: list[dict[str, Any]], hardware: str) -> str:
+    lines = [f"Rollout step's forward (moving particles decoded alone) with every node and edge encoded against a "
+             f"fixed floor's latents reused from the first step (`eval.static_encodings`), median of repeats; "
+             f"{hardware}.", "",
+             "| scene | precision | particles | static | edges | edges within the floor | all encoded, ms | "
+             "floor reused, ms | speed-up | largest difference (normalised acceleration) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['precision']} | {r['particles']} | {r['static_share']:.0%} | "
+                     f"{r['edges']} | {r['static_edge_share']:.0%} | {1e3 * r['encoded_s']:.1f} | "
+                     f"{1e3 * r['reused_s']:.1f} | {r['speedup']:.2f}x | {r['max_difference']:.1e} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
@@ -99,10 +168,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=7)
     args = parser.parse_args(argv)
     rows = measure(args.particles, tuple(args.dataset), args.repeats)
-    text = markdown(rows, hardware_description("cpu"))
+    reused = measure_encodings(args.particles, args.repeats)
+    hardware = hardware_description("cpu")
+    text = markdown(rows, hardware) + "\n" + encodings_markdown(reused, hardware)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "skips.md").write_text(text)
     (args.out / "skips.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (args.out / "static_encodings.json").write_text(json.dumps(reused, indent=1) + "\n")
     print(text)
 
 

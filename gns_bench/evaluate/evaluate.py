@@ -226,7 +226,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         started = time.perf_counter()
         result = rollout(rolled_out_by, traj, config.rollout_steps, run_hooks, device,
                          neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds,
-                         moving_only=config.moving_only)
+                         moving_only=config.moving_only, static_encodings=config.static_encodings)
         rollout_seconds = time.perf_counter() - started
         steps_bar.set_description(f"trajectory {index} one-step and distributional metrics")
         if result.stopped_by is not None:

@@ -17,6 +17,7 @@ from gns_bench.evaluate.result import RolloutResult, RolloutStopped
 from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
 from gns_bench.model.precision import dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
+from gns_bench.model.static_encodings import StaticEncodings
 
 
 @dataclass
@@ -35,13 +36,17 @@ Hook = Callable[[RolloutState], None]
 def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None = None,
             hooks: Sequence[Hook] = (), device: torch.device | str = "cpu",
             neighbour_skin: float = 0.0, precision: str = "fp32", reuse_static_edges: bool = True,
-            bounds: Sequence[Sequence[float]] | None = None, moving_only: bool = True) -> RolloutResult:
+            bounds: Sequence[Sequence[float]] | None = None, moving_only: bool = True,
+            static_encodings: bool = True) -> RolloutResult:
     """Roll out from the first W frames; every option below gives the same edges as a fresh search.
 
     neighbour_skin > 0: Verlet neighbour lists, rebuilt only when particles moved skin / 2.
     reuse_static_edges: edges among particles that never move (fixed boundaries) are found once.
     moving_only: a simulator that offers it (`predicts_moving_only`) skips the work of the kinematic particles,
     whose positions come from the data (the same positions up to the rounding of smaller matrix products).
+    static_encodings: a simulator that offers it (`caches_static_encodings`) encodes the particles that never
+    move, and the edges among them, at the first step only (`model/static_encodings.py`; the same up to the
+    same rounding).
     precision "bf16" / "fp64": autocast the network to bf16, or run it in float64 (a reference).
     bounds: the scene's walls, when they are not the training data's (a larger arena).
     Inflow (`trajectory.birth_step`): a particle enters the graph at its birth frame with the window of
@@ -71,6 +76,9 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
         neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.neighbour_backend,
                                            simulator.self_edges)
     skip = {"moving_only": True} if moving_only and getattr(simulator, "predicts_moving_only", False) else {}
+    if (static_encodings and birth is None and getattr(simulator, "caches_static_encodings", False)
+            and bool(static.any()) and not bool(static.all())):
+        skip["static_encodings"] = StaticEncodings(static)
     with network_dtype(simulator, dtype):
         for step in range(num_steps):
             frame = w + step

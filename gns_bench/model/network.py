@@ -191,15 +191,16 @@ class EncodeProcessDecode(nn.Module):
     def forward(self, node_features: torch.Tensor, edge_features: torch.Tensor | None, edge_index: torch.Tensor,
                 node_graph: torch.Tensor | None = None, num_graphs: int = 1,
                 global_features: torch.Tensor | None = None, outputs: torch.Tensor | None = None,
-                output_edges: torch.Tensor | None = None) -> torch.Tensor:
+                output_edges: torch.Tensor | None = None, encoded: bool = False) -> torch.Tensor:
         """Decoded outputs [N, out] of every node, or [P, out] of the nodes `outputs` (indices [P]) alone: the
         last block then updates only those nodes from `output_edges`, the edges into them (indices, in edge
         order), and the decoder reads only them (`InteractionNetwork.nodes_of`). The caller finds both (data-
-        dependent shapes stay out of a compiled network)."""
-        nodes = self.node_encoder(node_features)
+        dependent shapes stay out of a compiled network). `encoded`: the node and edge inputs are the
+        encoders' latents already (`model/static_encodings.py` reuses some across rollout steps)."""
+        nodes = node_features if encoded else self.node_encoder(node_features)
         if not self.schedule:
             return self.decoder(nodes if outputs is None else nodes.index_select(0, outputs))
-        edges = self.edge_encoder(edge_features)
+        edges = edge_features if encoded else self.edge_encoder(edge_features)
         globals_ = None
         if self.global_latent:
             if self.global_encoder is not None:

@@ -18,6 +18,7 @@ from gns_bench.model import features
 from gns_bench.model.neighbours import radius_graph
 from gns_bench.model.network import EncodeProcessDecode, sonnet_init_
 from gns_bench.model.precision import autocast
+from gns_bench.model.static_encodings import StaticEncodings
 
 CONTEXT_STD_FLOOR = 1e-8
 
@@ -91,6 +92,9 @@ class LearnedSimulator(nn.Module):
     # Optional (rollouts ask with getattr): `predict_next_position(..., moving_only=True)` skips the work
     # of particles whose predictions the caller overwrites (kinematic ones).
     predicts_moving_only = True
+    # Optional too: `predict_next_position(..., static_encodings=StaticEncodings(static))` reuses the encoder's
+    # latents of never-moving particles and the edges among them across a rollout's steps.
+    caches_static_encodings = True
 
     @property
     def input_sequence_length(self) -> int:
@@ -121,7 +125,8 @@ class LearnedSimulator(nn.Module):
 
     def forward(self, window: torch.Tensor, particle_type: torch.Tensor, batch: torch.Tensor | None = None,
                 context: torch.Tensor | None = None, edge_index: torch.Tensor | None = None,
-                bounds: torch.Tensor | None = None, moving_only: bool = False) -> torch.Tensor:
+                bounds: torch.Tensor | None = None, moving_only: bool = False,
+                static_encodings: StaticEncodings | None = None) -> torch.Tensor:
         """Normalised acceleration [N, D] for a window [N, W, D] of positions.
 
         batch [N]: graph index per particle (None: one graph); context [B, C]: raw global context per
@@ -130,8 +135,15 @@ class LearnedSimulator(nn.Module):
         moving_only: decode only the particles that are predicted (not kinematic): kinematic ones get zero
         acceleration (a constant-velocity step), which callers overwrite with the data. Their decoder and
         last node update, and the last block's messages into them, are skipped (`EncodeProcessDecode`).
+        static_encodings: one rollout's cache of the encoder's latents of particles that never move and of
+        the edges among them (`model/static_encodings.py`); the encoders then run outside the network.
         """
         inputs = self.graph_inputs(window, particle_type, batch, context, edge_index, bounds)
+        nodes, edges, encoded = inputs.nodes, inputs.edges, static_encodings is not None
+        if static_encodings is not None:
+            nodes = static_encodings.nodes(nodes, self.network.node_encoder)
+            if edges is not None and self.network.uses_edges:
+                edges = static_encodings.edges(edges, inputs.edge_index, self.network.edge_encoder)
         outputs = into = None
         if moving_only:
             moving = ~kinematic_mask(particle_type)
@@ -139,8 +151,8 @@ class LearnedSimulator(nn.Module):
                 outputs = moving.nonzero()[:, 0]
                 if inputs.edge_index is not None and self.network.uses_edges:
                     into = moving.index_select(0, inputs.edge_index[1]).nonzero()[:, 0]
-        out = self.network(inputs.nodes, inputs.edges, inputs.edge_index, inputs.batch, inputs.num_graphs,
-                           inputs.global_context, outputs, into)
+        out = self.network(nodes, edges, inputs.edge_index, inputs.batch, inputs.num_graphs,
+                           inputs.global_context, outputs, into, encoded)
         if self.config.gravity_bias:  # the network predicts the deviation from free fall
             out = out + (self.gravity - self.acc_mean) / self.acc_std
         if outputs is not None:
@@ -187,7 +199,8 @@ class LearnedSimulator(nn.Module):
     def predict_next_position(self, window: torch.Tensor, particle_type: torch.Tensor,
                               batch: torch.Tensor | None = None, context: torch.Tensor | None = None,
                               edge_index: torch.Tensor | None = None, bounds: torch.Tensor | None = None,
-                              precision: str = "fp32", moving_only: bool = False) -> torch.Tensor:
+                              precision: str = "fp32", moving_only: bool = False,
+                              static_encodings: StaticEncodings | None = None) -> torch.Tensor:
         """Next positions [N, D] of every particle, the one prediction path of evaluation and rollouts
         (callers put kinematic particles back from the data).
 
@@ -195,7 +208,8 @@ class LearnedSimulator(nn.Module):
         see `precision.network_dtype`); its output is cast back to the window's dtype, so denormalisation and
         the semi-implicit Euler step (Sec. 3.1) never round positions to bf16."""
         with autocast(window.device, precision):
-            normalised = self(window, particle_type, batch, context, edge_index, bounds, moving_only)
+            normalised = self(window, particle_type, batch, context, edge_index, bounds, moving_only,
+                              static_encodings)
         return features.integrate(window, self.denormalise_acceleration(normalised.to(window.dtype)))
 
 

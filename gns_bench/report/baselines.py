@@ -45,6 +45,7 @@ from gns_bench.report.collect import (  # noqa: E402
     mean_std,
     stress_sweeps,
 )
+from gns_bench.report.kept import read_kept, write_kept  # noqa: E402
 from gns_bench.report.reference import (  # noqa: E402
     baseline_failures,
     baseline_rollout_mse,
@@ -53,7 +54,6 @@ from gns_bench.report.reference import (  # noqa: E402
 )
 from gns_bench.report.verdict import error_measure  # noqa: E402
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
-from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary  # noqa: E402
 
 HEADER = ("| domain | GNS (ours) | baseline (ours, best run) | baseline / GNS (ours, same steps) | "
           "against constant velocity, same steps: GNS / baseline | rollout steps covered: GNS / baseline | "
@@ -511,7 +511,7 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
                            measured: dict[str, Any] | None = None) -> Path:
     """`measured`: a fresh `bench.costs.measure_costs` result; by default the one the summary already keeps."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    extras = read_summary_extras(out_dir / SUMMARY_FILE)
+    extras = read_kept(out_dir)
     measured = measured or extras.get(MEASURED)
     reports_root = reports_root or out_dir.parent.parent
     domains = {s.domain: s for s in domain_sweeps()}
@@ -532,10 +532,10 @@ def write_baselines_report(tier: str, out_dir: Path, reports_root: Path | None =
     failures, drawn = failure_section(collected, out_dir, extras.get("failures"), stand_ins)
     lines += failures
     kept = {**({"failures": drawn} if drawn else {}), **({MEASURED: measured} if measured else {})}
-    write_run_summary(out_dir / SUMMARY_FILE, "baselines", tier, [], kept,
-                      note="written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow "
-                           "no longer holds the runs (their numbers are in each baseline sweep's own summary), and "
-                           "the costs measured side by side (--measure-cost)")
+    write_kept(out_dir, "baselines", tier, kept,
+               note="written by gns-bench report baselines: the pictures it drew, which it keeps when MLflow no "
+                    "longer holds the runs (their numbers are in each baseline sweep's own summary), and the costs "
+                    "measured side by side (--measure-cost)")
     path = out_dir / "README.md"
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -7,6 +7,7 @@ silently dropping them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,8 +17,9 @@ import numpy as np
 
 from gns_bench import tracking
 from gns_bench.evaluate.result import RolloutResult
+from gns_bench.report.kept import UNFINISHED, read_kept
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep
-from gns_bench.sweep.summaries import read_run_summary, summary_path
+from gns_bench.sweep.summaries import read_run_summary, record_from_json, summary_path
 
 METRICS = ("one_step_mse", "rollout_mse", "ot", "mmd", "kinetic_energy_error", "rollout_seconds_per_step")
 
@@ -94,26 +96,36 @@ def stress_sweeps() -> list[SweepSpec]:
     return [s for s in (load_sweep(p) for p in discover_sweeps()) if s.kind == "stress"]
 
 
-CURVE_PREFIX = "curve/"  # metrics logged along training (train.eval_every), kept with their history
-
-
 def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> list[RunRow]:
     """One row per planned run: the newest FINISHED MLflow run of that name, else the one the committed run
     summary (`reports_root/<sweep>/<tier>/runs.json`) holds, else the newest MLflow run of any status (so a
-    failure shows), else none (missing). So a report is rebuilt from its summary when the MLflow store that
-    made it is gone, and runs finished since take their place."""
+    failure, or a run still training, shows), else the unfinished run the report last showed (`report.json`,
+    `UNFINISHED`), else none (missing). So a report is rebuilt from its summary when the MLflow store that made
+    it is gone, and runs finished since take their place. A run from MLflow that logged curves along training
+    (`curve/...`) comes with their history, finished or not."""
     records = tracking.search_sweep_runs(sweep.experiment, tier)
     saved = read_run_summary(summary_path(reports_root, sweep.name, tier)) if reports_root else {}
+    shown = read_kept(reports_root / sweep.name / tier).get(UNFINISHED, {}) if reports_root else {}
     rows = []
     for planned in sweep.plan(tier):
         named = [r for r in records if r.name == planned.name]  # newest first
         finished = [r for r in named if r.status == "FINISHED"]
-        record = (finished or [saved.get(planned.name)] or [None])[0] or (named or [None])[0]
-        if record is not None and record in finished and any(k.startswith(CURVE_PREFIX) for k in record.metrics):
+        record = ((finished or [saved.get(planned.name)] or [None])[0] or (named or [None])[0]
+                  or (record_from_json(shown[planned.name]) if planned.name in shown else None))
+        if record is not None and record in named and any(k.startswith(tracking.CURVE_PREFIX)
+                                                          for k in record.metrics):
             record.curves = {key: tracking.metric_history(record.run_id, key) for key in record.metrics
-                             if key.startswith(CURVE_PREFIX)}
+                             if key.startswith(tracking.CURVE_PREFIX)}
         rows.append(RunRow(planned, record))
     return rows
+
+
+def unfinished_records(rows: list[RunRow]) -> dict[str, dict]:
+    """The unfinished runs a report shows (failed, killed, still training), kept in its `report.json` under
+    `UNFINISHED`: the runner's summary holds finished runs only, so a rebuild without MLflow shows them from
+    there."""
+    return {row.planned.name: dataclasses.asdict(row.record) for row in rows
+            if row.record is not None and row.record.status != "FINISHED"}
 
 
 def mean_std(values: list[float]) -> tuple[float, float, int]:

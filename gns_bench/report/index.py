@@ -33,6 +33,7 @@ from gns_bench.report.cells import (
 )
 from gns_bench.report.collect import RunRow, collect, domain_sweeps, mean_std
 from gns_bench.report.intervals import Interval, mean_interval
+from gns_bench.report.kept import read_kept
 from gns_bench.report.reference import (
     ablation_reference,
     baseline_rollout_mse,
@@ -44,7 +45,6 @@ from gns_bench.report.stability import held_out_interval
 from gns_bench.report.verdict import EQUIVALENCE_MARGIN, ERROR, ONE_STEP, judge_axis
 from gns_bench.sweep.campaigns import CAMPAIGNS_DIR, load_campaign
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
-from gns_bench.sweep.summaries import read_summary_extras, summary_path
 
 RESULT_TIERS = [t for t in reversed(TIERS) if t != "smoke"]  # most thorough first: what a claim is shown at
 MAJOR_AXES = ("message_passing_steps", "connectivity_radius", "noise_std", "processor_sharing",
@@ -173,7 +173,7 @@ def _interpolation(sweep: SweepSpec, tier: str, row: RunRow, reports_root: Path)
     interval = held_out_interval(sweep.domain)
     if interval is None:
         return [], ""
-    saved = read_summary_extras(summary_path(reports_root, sweep.name, tier)).get("stress", {}).get(row.run_id, {})
+    saved = read_kept(reports_root / sweep.name / tier).get("stress", {}).get(row.run_id, {})
     held, trained = [], []
     for variant in saved.get("generalisation", {}).values():
         for r in variant.get("per_trajectory", []):

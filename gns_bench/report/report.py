@@ -48,8 +48,10 @@ from gns_bench.report.collect import (
     load_rollouts,
     mean_std,
     resolve_sweep,
+    unfinished_records,
 )
 from gns_bench.report.index import write_index
+from gns_bench.report.kept import KEPT_FILE, UNFINISHED, read_kept, write_kept
 from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
 from gns_bench.report.study import candidates_section
@@ -67,7 +69,7 @@ from gns_bench.report.verdict import (
     matched,
 )
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, discover_sweeps, load_sweep
-from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras, write_run_summary
+from gns_bench.sweep.summaries import SUMMARY_FILE
 
 # ----------------------------------------------------------------------------------------------
 # Domain table (Table 1, App. C.4)
@@ -433,11 +435,12 @@ def _shared_pictures(row: RunRow, out_dir: Path) -> list[str]:
     tier_dir = out_dir.name
     reports_root = out_dir.parent.parent
     candidates = [reports_root / source.split("/")[0] / tier_dir] if "/" in source else []
-    candidates += sorted(p.parent for p in reports_root.glob(f"*/{tier_dir}/{SUMMARY_FILE}"))
+    candidates += sorted({p.parent for name in (KEPT_FILE, SUMMARY_FILE)
+                          for p in reports_root.glob(f"*/{tier_dir}/{name}")})
     for source_dir in candidates:
         if source_dir.resolve() == out_dir.resolve():
             continue
-        picks = read_summary_extras(source_dir / SUMMARY_FILE).get("rollouts") or {}
+        picks = read_kept(source_dir).get("rollouts") or {}
         drew = picks.get("source_run", picks.get("run_id"))
         if drew != source_run or not picks.get("shown") or not all(
                 (source_dir / f"rollout_{s['label']}.png").is_file() for s in picks["shown"]):
@@ -460,9 +463,9 @@ def _rollout_title(shown: dict, alone: bool = False) -> str:
     return f"{label}: trajectory {shown['trajectory']}, MSE {shown['mse']:.3g} over {shown['steps']} steps{stop}"
 
 
-def previous_picks(summary: Path) -> dict | None:
-    """The rollout pictures the last report showed (its run summary's `extras`), if any."""
-    return read_summary_extras(summary).get("rollouts")
+def previous_picks(report_dir: Path) -> dict | None:
+    """The rollout pictures the last report at `report_dir` showed (what it kept), if any."""
+    return read_kept(report_dir).get("rollouts")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -476,7 +479,8 @@ def _write(out_dir: Path, lines: list[str]) -> Path:
 
 
 def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[RunRow] | None = None) -> Path:
-    """The sweep's report from `rows` (its collected runs; collected here when not given), and its run summary."""
+    """The sweep's report from `rows` (its collected runs; collected here when not given), and what it keeps of
+    the runs' artifacts (`report/kept.py`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = collect(sweep, tier, out_dir.parent.parent) if rows is None else rows
     compare = tier != "smoke"
@@ -487,7 +491,7 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
     extras: dict = {}
     if sweep.kind == "stress":
         section, stress = sweep_section(sweep, rows, out_dir,
-                                        saved=read_summary_extras(out_dir / SUMMARY_FILE).get("stress"))
+                                        saved=read_kept(out_dir).get("stress"))
         lines += section
         extras = {"stress": stress} if stress else {}
     elif sweep.kind == "domain":
@@ -498,10 +502,11 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
         if sweep.kind == "baseline":
             lines += baseline_section(sweep, tier, rows, out_dir.parent.parent, compare)
         lines += ablation_section(sweep, rows, out_dir, compare)
-    rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir / SUMMARY_FILE))
+    rollouts, picks = rollout_section(rows, out_dir, previous_picks(out_dir))
     lines += ["## Runs", "", *runs_table(sweep, rows), "", *time_section(rows, out_dir), *rollouts]
     extras |= {"rollouts": picks} if picks else {}
-    write_run_summary(out_dir / SUMMARY_FILE, sweep.name, tier, [r.record for r in rows if r.record], extras or None)
+    extras |= {UNFINISHED: unfinished} if (unfinished := unfinished_records(rows)) else {}
+    write_kept(out_dir, sweep.name, tier, extras)
     return _write(out_dir, lines)
 
 

@@ -29,8 +29,8 @@ from gns_bench.report import figures
 from gns_bench.report.cells import budget, budget_statement, fmt
 from gns_bench.report.collect import RunRow, collect, load_rollouts, stress_sweeps
 from gns_bench.report.figures import RIGIDITY_WORDS
+from gns_bench.report.kept import read_kept
 from gns_bench.sweep.spec import SweepSpec
-from gns_bench.sweep.summaries import SUMMARY_FILE, read_summary_extras
 
 
 def load_results(row: RunRow, workdir: Path) -> list[StressResult]:
@@ -278,7 +278,7 @@ def write_stability_report(tier: str, out_dir: Path, sweeps: list[SweepSpec] | N
         if not done:
             states = ", ".join(sorted({r.status for r in rows})) or "missing"
             lines.append(f"| {sweep.name} | {sweep.domain} | **{states}** | **{states}** | — | — | — |")
-        saved = read_summary_extras(out_dir.parent.parent / sweep.name / tier / SUMMARY_FILE).get("stress") or {}
+        saved = read_kept(out_dir.parent.parent / sweep.name / tier).get("stress") or {}
         for row in done:
             horizon, scale = stable_cells(row, saved.get(row.run_id, {}).get("rollout_lengths"))
             lines.append(f"| {sweep.name} | {sweep.domain} | {horizon} | {scale} | {len(trips(row))} | "

@@ -40,8 +40,9 @@ DPI = 80
 
 
 def curve(row: RunRow, metric: str) -> list[tuple[float, float]]:
-    """(training seconds, value) of one `curve/<metric>` a run logged, by step (`collect` reads the curves)."""
-    if not row.ok:
+    """(training seconds, value) of one `curve/<metric>` a run logged, by step (`collect` reads the curves), of a
+    finished run or one still training."""
+    if row.record is None:
         return []
     seconds = dict(row.record.curves.get("curve/train_seconds", []))
     if metric == "against_cv":
@@ -143,7 +144,7 @@ def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | No
         for seed_index, row in enumerate(group):
             for ax, (metric, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
                 points = [(step, value) for step, value in (row.record.curves.get(f"curve/{metric}", [])
-                                                            if row.ok else []) if math.isfinite(value)]
+                                                            if row.record else []) if math.isfinite(value)]
                 if not points:
                     continue
                 drawn = True
@@ -164,6 +165,19 @@ def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | No
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
+
+
+def unfinished_curves(rows: list[RunRow]) -> list[str]:
+    """A sentence naming the runs whose curves end before their budget (still training, or stopped), with the
+    last step each evaluated; none when every drawn curve is a finished run's."""
+    parts = []
+    for row in rows:
+        points = row.record.curves.get("curve/train_seconds", []) if row.record else []
+        if points and not row.ok:
+            parts.append(f"{row.planned.name} ({row.status}, evaluated to step {points[-1][0]:,} of "
+                         f"{row.planned.config.train.steps:,})")
+    return [f"Not finished when this report was written, drawn as far as they went: {'; '.join(parts)}.", ""] \
+        if parts else []
 
 
 def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir: Path,
@@ -187,7 +201,7 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
         lines += ["## Error against training time", "",
                   f"Each run evaluated along the way on the first `train.eval_trajectories` validation trajectories "
                   f"(rolled out {rollout_steps} steps), against its training time so far; dashed: further seeds.", "",
-                  f"![error against training time]({figure.name})", ""]
+                  f"![error against training time]({figure.name})", "", *unfinished_curves(rows)]
     diagnostics = diagnostics_figure(groups, out_dir / "diagnostics_vs_steps.png")
     if diagnostics is not None:
         lines += ["## Physical diagnostics against training steps", "",
@@ -195,5 +209,6 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
                   "acceleration of particles the truth has in free fall over g, on true windows and along the "
                   "model's own rollout, and how far the material's centre of mass falls over the truth's fall; "
                   "1 (dotted) is the truth, 0 a block that hovers.", "",
-                  f"![physical diagnostics against training steps]({diagnostics.name})", ""]
+                  f"![physical diagnostics against training steps]({diagnostics.name})", "",
+                  *(unfinished_curves(rows) if figure is None else [])]
     return lines

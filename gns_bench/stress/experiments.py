@@ -1,4 +1,4 @@
-"""The stress tests of a trained model (issue 7; the paper's Sec. 5.3 and App. C.7), as functions of a simulator
+"""The stress tests of a trained model (the paper's Sec. 5.3 and App. C.7), as functions of a simulator
 and trajectories: each returns a `StressResult` of scalar metrics, curves over rollout steps and the
 monitors that tripped. Where the scenes come from (dataset variants) is `stress/run.py`'s business.
 

@@ -81,11 +81,12 @@ def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
 
 
 def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], parallel: int,
-                 echo: Callable[[str], None] = print) -> list[Result | str]:
+                 echo: Callable[[str], None] = print,
+                 on_result: Callable[[Result | str], None] | None = None) -> list[Result | str]:
     """`job(run)` for every run, `parallel` at a time, each in its own (spawned) process pinned to its own
     slice of this process's cores (`core_slices`); on a GPU they share the device. Prints each run as it ends,
-    with what is still running and waiting. Returns each run's result in `runs`' order, or a message saying
-    why its process died outside the run."""
+    with what is still running and waiting, and hands it to `on_result` (in this process). Returns each run's
+    result in `runs`' order, or a message saying why its process died outside the run."""
     if not runs:
         return []
     parallel = min(parallel, len(runs))
@@ -109,6 +110,8 @@ def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], pa
                     results[i] = future.result()
                 except Exception as exc:  # noqa: BLE001 - a process that died outside the run
                     results[i] = f"process of {runs[i].name}: {type(exc).__name__}: {exc}"
+                if on_result is not None:
+                    on_result(results[i])
                 status = getattr(results[i], "status", "FAILED")
                 elapsed = time.perf_counter() - started
                 left = len(runs) - done

@@ -10,7 +10,8 @@ instead of training it again. A run that fails is
 recorded FAILED with its error and the sweep goes on; Ctrl-C marks the run in flight KILLED and stops the
 sweep, and the next invocation resumes it from its checkpoint.
 
-The committed run summaries (`reports/<sweep>/<tier>/runs.json`, `sweep/summaries.py`) count as well, so a
+The runner writes each run into its sweep's run summary (`reports/<sweep>/<tier>/runs.json`,
+`sweep/summaries.py`) as the run finishes. The committed summaries count as finished runs, so a
 campaign resumed on a machine whose MLflow store is gone does not train again what the repository reports: a
 run whose key a summary of its sweep holds is finished, one whose key a summary of another sweep holds is
 shared from that record (params and metrics; its artifacts are gone), and a run its sweep's summary holds is
@@ -36,7 +37,7 @@ from gns_bench.data.format import read_metadata
 from gns_bench.datasets import dataset_complete, dataset_path, ensure_dataset, resolve_for_domain
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
-from gns_bench.sweep.summaries import RESTORED_FROM, summarised_runs
+from gns_bench.sweep.summaries import RESTORED_FROM, record_runs, summarised_runs, summary_path
 
 
 @dataclass
@@ -249,6 +250,26 @@ def stress_trained_run(run: PlannedRun, key: str, source: tracking.RunRecord, da
     return RunOutcome(run.name, "FINISHED", summary.run_id, metrics=summary.metrics)
 
 
+RECORDED = ("FINISHED", "SHARED", "REEVALUATED")  # the outcomes that leave a finished MLflow run to summarise
+
+
+def summarise(sweep: SweepSpec, tier: str, reports_root: Path, run_ids: Iterable[str]) -> list[str]:
+    """Put the finished MLflow runs `run_ids` (params, final metrics, tags, curves) into the sweep's run summary
+    under `reports_root` (`summaries.record_runs`); returns the run names written."""
+    records = [r for r in (tracking.run_record(run_id) for run_id in run_ids if run_id) if r is not None]
+    return record_runs(summary_path(reports_root, sweep.name, tier), sweep.name, tier, records)
+
+
+def summarise_finished(sweep: SweepSpec, tier: str, reports_root: Path, names: Iterable[str]) -> list[str]:
+    """The newest FINISHED MLflow run of each of `names` (the run a report shows) into the sweep's summary:
+    runs finished before the runner kept summaries, or in another process, are recorded too."""
+    wanted, newest = set(names), {}
+    for record in tracking.search_sweep_runs(sweep.experiment, tier):  # newest first
+        if record.status == "FINISHED" and record.name in wanted:
+            newest.setdefault(record.name, record.run_id)
+    return summarise(sweep, tier, reports_root, newest.values())
+
+
 def select_runs(sweep: SweepSpec, runs: list[PlannedRun], only: Sequence[str]) -> list[PlannedRun]:
     """The runs whose names match any of the `only` shell patterns (all runs when there are none)."""
     if not only:
@@ -355,8 +376,11 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
     the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
-    GPU, sharing the device). `after_run(outcome, runs_left)`: called as each run the local launcher
-    trains one at a time ends, with how many of this call's runs are still to train."""
+    GPU, sharing the device). `reports_root`: where the run summaries are read, and where each run that
+    finishes (trained, shared, stress-tested, evaluated again) is recorded in its sweep's summary as it ends,
+    with the finished runs MLflow holds that the summary lacks (none: MLflow only). `after_run(outcome,
+    runs_left)`: called as each run the local launcher trains one at a time ends, with how many of this
+    call's runs are still to train."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
     if parallel > 1 and launcher != "local":
@@ -380,23 +404,34 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
          + f", {len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
     if not train:
         pending = []
+
+    def keep(outcome: RunOutcome | str) -> None:  # each finished run into the sweep's summary as it ends
+        if reports_root is not None and isinstance(outcome, RunOutcome) and outcome.status in RECORDED:
+            summarise(sweep, tier, reports_root, [outcome.run_id])
+
+    if reports_root is not None:
+        summarise_finished(sweep, tier, reports_root, [r.name for r in runs if status[r.name] == FINISHED])
+    for outcome in again:
+        keep(outcome)
     for run in runs:
         if run.name in shared and status[run.name].startswith(STRESSED):
             key, source = shared[run.name]
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}), its checkpoint stress-tested")
             outcomes.append(stress_trained_run(run, key, source, data_root, runs_root, progress))
+            keep(outcomes[-1])
         elif run.name in shared:
             key, source = shared[run.name]
             where = f", from {source.tags[RESTORED_FROM]}" if RESTORED_FROM in source.tags else ""
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}{where}), recorded without training")
             outcomes.append(share_run(run, key, source))
+            keep(outcomes[-1])
     if launcher == "local" and parallel > 1:
         from gns_bench.sweep.launchers import run_parallel
 
         echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores")
         job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
                       tracking_uri=tracking.tracking_uri(), progress=False)
-        results = run_parallel(job, pending, parallel, echo)
+        results = run_parallel(job, pending, parallel, echo, on_result=keep)
         outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
                      for run, result in zip(pending, results, strict=True)]
     elif launcher == "local":
@@ -406,6 +441,7 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
             if outcome.status == "FAILED":
                 echo(f"  FAILED: {outcome.error}")
             outcomes.append(outcome)
+            keep(outcome)
             if after_run is not None:
                 after_run(outcome, len(pending) - index)
     elif launcher == "submitit":
@@ -416,6 +452,8 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         results = submit(job, pending, runs_root / sweep.name / tier / "submitit", cluster)
         outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
                      for run, result in zip(pending, results, strict=True)]
+        for result in results:
+            keep(result)
     else:
         raise ValueError(f"unknown launcher {launcher!r}; expected 'local' or 'submitit'")
     return outcomes

@@ -1,16 +1,18 @@
-"""Run summaries: the compact record of a sweep's runs committed beside its report.
+"""Run summaries: the compact record of a sweep's runs, committed beside its report.
 
-`reports/<sweep>/<tier>/runs.json` holds each run's params, final metrics, tags (its `run_key`, dataset hash,
-hardware, timing) and training curves, and `extras`: what else its report showed that MLflow's artifacts held.
-`gns-bench report` writes it and rebuilds the tables from it when the MLflow store that made the runs is gone;
-the sweep runner reads it to know which runs are done in such a store (`sweep/runner.py`), so a campaign
-resumed on a new machine does not train again what the repository already reports.
+`reports/<sweep>/<tier>/runs.json` holds each finished run's params, final metrics, tags (its `run_key`, dataset
+hash, hardware, timing) and training curves. The sweep runner writes it as each run finishes
+(`sweep/runner.py`, `record_runs`), and reads it to know which runs are done in a store that lacks them, so a
+campaign resumed on a new machine does not train again what the repository already holds; the reports read
+it (beside MLflow) and rebuild from it when the MLflow store that made the runs is gone. What a report keeps
+of its own (which rollouts it drew) is `report/kept.py`'s.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -25,26 +27,49 @@ def summary_path(reports_root: Path, sweep: str, tier: str) -> Path:
     return Path(reports_root) / sweep / tier / SUMMARY_FILE
 
 
-DEFAULT_NOTE = "written by gns-bench report; read back by it when MLflow no longer holds these runs"
+DEFAULT_NOTE = ("written by gns-bench sweep as each run finished; read back by it and by the reports when MLflow "
+                "no longer holds these runs")
 
 
 def write_run_summary(path: Path, sweep: str, tier: str, records: Iterable[tracking.RunRecord],
-                      extras: dict[str, Any] | None = None, note: str = DEFAULT_NOTE) -> Path:
-    """The runs as JSON (sorted by run name), `extras` (e.g. which rollouts the report drew) and a `note` on
-    what wrote the file."""
+                      note: str = DEFAULT_NOTE, extras: dict[str, Any] | None = None) -> Path:
+    """The runs as JSON (sorted by run name) with a `note` on what wrote the file, written whole through a
+    temporary file (an interrupted write leaves the old summary). `extras`: the report's kept data of a
+    summary written before reports kept their own (`report/kept.py`), carried over unchanged."""
     runs = [dataclasses.asdict(r) for r in sorted(records, key=lambda r: r.name)]
-    payload = {"sweep": sweep, "tier": tier, "note": note, "runs": runs, "extras": extras or {}}
-    path.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
+    payload: dict[str, Any] = {"sweep": sweep, "tier": tier, "note": note, "runs": runs}
+    if extras:
+        payload["extras"] = extras
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    partial.write_text(json.dumps(payload, indent=1, sort_keys=True, allow_nan=True) + "\n")
+    os.replace(partial, path)
     return path
 
 
-def read_summary_extras(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        return {}
-    try:
-        return dict(json.loads(path.read_text()).get("extras", {}))
-    except ValueError:
-        return {}
+def record_runs(path: Path, sweep: str, tier: str, records: Iterable[tracking.RunRecord]) -> list[str]:
+    """Put FINISHED `records` into the summary at `path` (created if missing), each replacing the record of
+    its run name; the other runs stay as they were. Returns the names written (none when every record was
+    already there as it is)."""
+    held = read_run_summary(path)
+    fresh = [r for r in records
+             if r.status == "FINISHED" and (r.name not in held or _as_json(held[r.name]) != _as_json(r))]
+    if not fresh:
+        return []
+    held.update({r.name: r for r in fresh})
+    extras = json.loads(path.read_text()).get("extras") if path.is_file() else None
+    write_run_summary(path, sweep, tier, held.values(), extras=extras)
+    return [r.name for r in fresh]
+
+
+def _as_json(record: tracking.RunRecord) -> str:
+    """A record as the summary writes it (NaN equal to NaN, tuples to lists)."""
+    return json.dumps(dataclasses.asdict(record), sort_keys=True, allow_nan=True)
+
+
+def record_from_json(run: dict[str, Any]) -> tracking.RunRecord:
+    """A record as a summary holds it (its curves' points as lists) back as a `RunRecord`."""
+    return tracking.RunRecord(**{**run, "curves": {k: [tuple(p) for p in v] for k, v in run.get("curves", {}).items()}})
 
 
 def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
@@ -53,10 +78,7 @@ def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
     if not path.is_file():
         return {}
     try:
-        runs = json.loads(path.read_text())["runs"]
-        records = [tracking.RunRecord(**{**run, "curves": {k: [tuple(p) for p in v]
-                                                           for k, v in run.get("curves", {}).items()}})
-                   for run in runs]
+        records = [record_from_json(run) for run in json.loads(path.read_text())["runs"]]
     except (ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a gns-bench run summary ({type(exc).__name__}: {exc})") from None
     return {record.name: record for record in records}

@@ -359,3 +359,87 @@ def test_training_with_moving_only_has_the_same_loss_and_gradients(unroll: int) 
     for a, b in zip(full_grads, skipped_grads, strict=True):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-14)
     assert any(g.abs().max() > 0 for g in full_grads)
+
+
+def boundary_trajectory(n: int = 60, frames: int = 30, context: bool = False):
+    """Particles moving above a fixed floor of kinematic ones (a third of them, side by side, so that edges
+    join floor particles), optionally with a global context that changes every frame."""
+    from gns_bench.data.format import Trajectory
+
+    g = torch.Generator().manual_seed(2)
+    floor = torch.arange(n) < n // 3
+    start = torch.rand(n, 2, generator=g) * 0.5 + 0.3
+    start[floor] = torch.stack([torch.linspace(0.2, 0.8, int(floor.sum())), torch.full((int(floor.sum()),), 0.2)], 1)
+    velocity = torch.randn(n, 2, generator=g) * 3e-3
+    velocity[floor] = 0.0
+    types = torch.where(floor, 3, 5)
+    position = start[None] + torch.arange(frames, dtype=torch.float32)[:, None, None] * velocity[None]
+    step_context = torch.linspace(0.3, 0.7, frames)[:, None].numpy() if context else None
+    return Trajectory(position.numpy(), types.numpy(), step_context), floor
+
+
+@pytest.mark.parametrize("context", [False, True], ids=["fixed features", "context changing every step"])
+def test_a_rollout_reusing_static_encodings_is_the_full_rollout(context: bool,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The encoder's latents of a fixed floor's particles and of the edges among them, computed once: the
+    rollout equals the one that encodes everything every step (float64 to 1e-12, float32 within 1e-6), and
+    the latents were indeed reused after the first step, the nodes' only while their features stayed the
+    same (a per-step context changes every particle's features, so they are encoded afresh)."""
+    from gns_bench.evaluate import rollout as rollout_module
+    from gns_bench.model.static_encodings import StaticEncodings
+
+    made: list[StaticEncodings] = []
+
+    class Recorded(StaticEncodings):
+        def __init__(self, static: torch.Tensor):
+            super().__init__(static)
+            made.append(self)
+
+    monkeypatch.setattr(rollout_module, "StaticEncodings", Recorded)
+    torch.manual_seed(1)
+    sim = LearnedSimulator(ModelConfig(**SMALL), metadata(walls=True, context=1 if context else 0), 3e-4)
+    trajectory, floor = boundary_trajectory(context=context)
+    steps = trajectory.num_steps - 6
+    for precision, tolerance in (("fp64", 1e-12), ("fp32", 1e-6)):
+        full = rollout_module.rollout(sim, trajectory, precision=precision, static_encodings=False).predicted
+        assert not made
+        cached = rollout_module.rollout(sim, trajectory, precision=precision).predicted
+        [cache] = made
+        assert torch.equal(cache.static, floor)
+        assert full.shape == cached.shape == (steps, 60, 2)
+        assert abs(full - cached).max() <= tolerance, (precision, abs(full - cached).max())
+        assert abs(full[-1] - trajectory.position[-1]).max() > 1e-3  # the model's own path, not the data's
+        # edges among floor particles every step after the first; floor nodes only without a changing context
+        assert cache.reused == (steps - 1) * (1 if context else 2), cache.reused
+        made.clear()
+
+
+def test_static_encodings_encode_only_what_changed() -> None:
+    """After the first call, only moving particles' rows (and edges touching one) reach the encoder; rows
+    whose features changed since are encoded again, and the latents are the encoder's own."""
+    from gns_bench.model.static_encodings import StaticEncodings
+
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(3, 4).double()
+    seen: list[int] = []
+
+    def encoder(rows: torch.Tensor) -> torch.Tensor:
+        seen.append(rows.shape[0])
+        return linear(rows)
+
+    static = torch.tensor([True, True, False, True, False])
+    cache = StaticEncodings(static)
+    features = torch.randn(5, 3, dtype=torch.float64)
+    for _ in range(2):
+        torch.testing.assert_close(cache.nodes(features, encoder), linear(features), rtol=0, atol=1e-15)
+    assert seen == [5, 2]
+    features[4] += 1.0  # a moving particle's features change: still only the moving rows
+    features[1] += 1.0  # a static one's change too: all encoded again
+    torch.testing.assert_close(cache.nodes(features, encoder), linear(features), rtol=0, atol=1e-15)
+    assert seen == [5, 2, 5]
+    edge_index = torch.tensor([[0, 1, 2, 3, 4], [1, 0, 0, 1, 3]])  # 0-1 and 1-0 join static particles, 3-1 too
+    edges = torch.randn(5, 3, dtype=torch.float64)
+    seen.clear()
+    for _ in range(2):
+        torch.testing.assert_close(cache.edges(edges, edge_index, encoder), linear(edges), rtol=0, atol=1e-15)
+    assert seen == [5, 2]

@@ -181,16 +181,17 @@ def test_continuous_interpolates_when_held_out_angles_match_their_trained_neighb
 
     lo, hi = held_out_interval("continuous")
     (tmp_path / "stress-continuous" / "cpu").mkdir(parents=True)
-    path = tmp_path / "stress-continuous" / "cpu" / "runs.json"
-    summary = json.loads((REPORTS / "stress-continuous" / "smoke" / "runs.json").read_text())
-    (run_id,) = summary["extras"]["stress"]
+    shutil.copy(REPORTS / "stress-continuous" / "smoke" / "runs.json", tmp_path / "stress-continuous" / "cpu")
+    path = tmp_path / "stress-continuous" / "cpu" / "report.json"  # the stress results the report kept
+    kept = json.loads((REPORTS / "stress-continuous" / "smoke" / "report.json").read_text())
+    (run_id,) = kept["kept"]["stress"]
     angles = range(0, 85, 5)
 
     def row(ratio) -> list[str]:
         grid = [{"context": float(a), "rollout_mse": ratio(a) * 1e-3, "baseline_cv_same_steps_mse": 1e-3}
                 for a in angles]
-        summary["extras"]["stress"][run_id]["generalisation"]["continuous-heldout"]["per_trajectory"] = grid
-        path.write_text(json.dumps(summary))
+        kept["kept"]["stress"][run_id]["generalisation"]["continuous-heldout"]["per_trajectory"] = grid
+        path.write_text(json.dumps(kept))
         (line,) = [x for x in generalisation_claims(tmp_path) if x.startswith("| CONTINUOUS")]
         return line.split(" | ")
 

@@ -389,18 +389,17 @@ def test_the_rollout_pictures_say_when_the_run_drawn_is_not_the_best_like_for_li
 def test_a_run_drawn_in_another_report_is_linked_not_drawn_again(tmp_path: Path) -> None:
     """Issue #20.6: the rollout pictures of a training run live in one report; a report whose best run is
     that run (a shared copy, or the run copies were made from) links them, whichever report drew them."""
-    import json
 
     from gns_bench.report.collect import RunRow
+    from gns_bench.report.kept import write_kept
     from gns_bench.report.report import _shared_pictures
-    from gns_bench.sweep.summaries import SUMMARY_FILE
 
     drew = tmp_path / "domain-goop" / "cpu"
     drew.mkdir(parents=True)
     (drew / "rollout_best.png").write_bytes(b"png")
     shown = [{"label": "best", "trajectory": 3, "mse": 0.01, "steps": 394, "stopped": ""}]
-    (drew / SUMMARY_FILE).write_text(json.dumps({"runs": [], "extras": {"rollouts": {
-        "run_id": "copy1", "source_run": "trained", "split": "test", "shown": shown}}}))
+    write_kept(drew, "domain-goop", "cpu", {"rollouts": {"run_id": "copy1", "source_run": "trained", "split": "test",
+                                                         "shown": shown}})
     planned = load_sweep(SWEEPS_DIR / "ablations" / "noise_std.toml").plan("cpu")[0]
 
     def row(run_id: str, tags: dict) -> RunRow:

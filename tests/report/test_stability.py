@@ -15,7 +15,7 @@ from gns_bench import tracking
 from gns_bench.cli import main
 from gns_bench.report.report import write_sweep_report
 from gns_bench.report.stability import write_stability_report
-from gns_bench.sweep.runner import run_sweep
+from gns_bench.sweep.runner import run_sweep, summarise_finished
 from gns_bench.sweep.spec import SWEEPS_DIR, load_sweep
 
 STRESS = '''description = "tiny stress"
@@ -72,6 +72,7 @@ def test_stability_page_and_stress_report_show_tests_skips_and_figures(stressed:
     # The page sums up and links; the figures live in each sweep's own report, drawn once (issue #20.6).
     assert f"[{sweep.name}](../../{sweep.name}/smoke/README.md)" in text and "![" not in text
     report = tmp_path / sweep.name / "smoke"
+    summarise_finished(sweep, "smoke", tmp_path, [r.name for r in sweep.plan("smoke")])  # the runner's record
     readme = write_sweep_report(sweep, "smoke", report)
     text = readme.read_text()
     assert "no dataset variant 'tiny-x2'" in text
@@ -95,6 +96,7 @@ def test_without_a_horizon_test_the_evaluation_rollouts_bound_the_horizon(stress
     page = tmp_path / "stability" / "smoke"
     text = write_stability_report("smoke", page, [sweep]).read_text()
     # Its report and the page, written again from the run summary once the store is gone, say the same.
+    summarise_finished(sweep, "smoke", tmp_path, [r.name for r in sweep.plan("smoke")])  # the runner's record
     report = write_sweep_report(sweep, "smoke", tmp_path / sweep.name / "smoke").read_text()
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
     assert write_sweep_report(sweep, "smoke", tmp_path / sweep.name / "smoke").read_text() == report

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -156,7 +157,8 @@ def test_only_and_no_train_choose_what_a_session_runs(sweeps: Path, tmp_path: Pa
     base_path, abl_path = sweeps / "tests" / "obase.toml", sweeps / "tests" / "oabl.toml"
     base_path.write_text(own.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[2]"))
     abl_path.write_text(own)
-    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs")]
+    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs"),
+             "--reports-root", str(tmp_path / "reports")]
     abl = load_sweep(abl_path)
     assert main(["sweep", str(abl_path), "--only", "nothing-*", *roots]) == 2
     assert "no run matches --only nothing-*" in capsys.readouterr().err
@@ -448,7 +450,8 @@ def test_reevaluate_replaces_the_evaluation_and_copies_afresh(sweeps: Path, tmp_
     abl_path.write_text(own.replace('"model.message_passing_steps" = [1, 2]\n', "")
                         .replace("mlp_hidden_size = 8\n", "mlp_hidden_size = 8\nmessage_passing_steps = 1\n")
                         .replace("[0.0, 3e-4]", "[3e-4]"))
-    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs")]
+    roots = ["--data-root", str(tmp_path / "data"), "--runs-root", str(tmp_path / "runs"),
+             "--reports-root", str(tmp_path / "reports")]
     assert main(["sweep", str(base_path), *roots]) == 0
     assert main(["sweep", str(abl_path), *roots]) == 0
     (source,) = runs_of("sweep:test-rbase")
@@ -552,7 +555,8 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     assert (more.dataset_tier, more.evaluated_on) == ("small", "smoke") and more.eval_dataset_tier == "smoke"
     assert (plain.dataset_tier, plain.evaluated_on, plain.eval_dataset_tier) == ("smoke", "smoke", None)
     assert more.config.model.message_passing_steps == 2 and more.config.model.latent_size == 8
-    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False,
+                         reports_root=tmp_path / "reports")
     assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"], [o.error for o in outcomes]
     previous_uri = tracking.tracking_uri()
     logged = {r.info.run_name: r for r in runs_of(sweep.experiment)}
@@ -561,12 +565,16 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     assert trained_on["eval_dataset_hash"] == logged["candidate=plain-seed0"].data.tags["dataset_hash"]
     from gns_bench.report import write_report
 
+    summary = tmp_path / "reports" / "study-two" / "smoke" / "runs.json"
+    recorded = summary.read_bytes()  # the runner's record of both runs, curves included
+    assert all(json.loads(recorded)["runs"][i]["curves"] for i in range(2))
     text = write_report(path, "smoke", tmp_path / "reports").read_text()
+    assert summary.read_bytes() == recorded  # the report reads the records; it does not write them
     assert "| `plain` | 1 | 20 |" in text and "| `more-data` | 1 | 20 |" in text  # one seed, 20 steps each
     assert "**Winner.**" not in text  # smoke: a pipeline check names no winner
     assert "![error against training time](error_vs_time.png)" in text
     assert (tmp_path / "reports" / "study-two" / "smoke" / "error_vs_time.png").stat().st_size > 5000
-    # the committed run summary rebuilds the same tables and curves when the MLflow store is gone
+    # the run summary the runner wrote rebuilds the same tables and curves when the MLflow store is gone
     tracking.use_tracking_uri(f"sqlite:///{tmp_path / 'empty.db'}")
     try:
         again = write_report(path, "smoke", tmp_path / "reports").read_text()
@@ -578,6 +586,40 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     with pytest.raises(SweepError, match="not both"):
         path.write_text(STUDY + '\n[grid]\n"train.noise_std" = [0.0]\n')
         load_sweep(path)
+
+
+def test_a_study_report_draws_a_run_still_training_and_is_rebuilt_without_mlflow(
+        sweeps: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run still training has no place in the runner's summary (finished runs only), yet its curves so far
+    are worth reading: the study's report draws them, says how far they went, and keeps the run
+    (`report.json`), so that the report is rebuilt the same where MLflow no longer holds it."""
+    from gns_bench.report import write_report
+    from gns_bench.sweep.summaries import read_run_summary, summary_path, write_run_summary
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'first.db'}")
+    (sweeps / "studies").mkdir()
+    path = sweeps / "studies" / "two.toml"
+    path.write_text(STUDY)
+    sweep = load_sweep(path)
+    reports = tmp_path / "reports"
+    run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False,
+              reports_root=reports)
+    summary = summary_path(reports, sweep.name, "smoke")
+    held = read_run_summary(summary)
+    training = held.pop("candidate=plain-seed0")  # as if it were still training: not in the summary yet
+    write_run_summary(summary, sweep.name, "smoke", held.values())
+    MlflowClient().update_run(training.run_id, status="RUNNING")
+    text = write_report(path, "smoke", reports).read_text()
+    assert ("Not finished when this report was written, drawn as far as they went: candidate=plain-seed0 "
+            "(running, evaluated to step 20 of 20)") in text
+    assert "| candidate=plain-seed0 | plain | 0 | **running** |" in text
+    kept = json.loads((reports / sweep.name / "smoke" / "report.json").read_text())["kept"]["unfinished"]
+    assert list(kept) == ["candidate=plain-seed0"] and kept["candidate=plain-seed0"]["curves"]["curve/rollout_mse"]
+    figure = (reports / sweep.name / "smoke" / "error_vs_time.png").read_bytes()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")  # the store is gone
+    assert write_report(path, "smoke", reports).read_text() == text
+    assert (reports / sweep.name / "smoke" / "error_vs_time.png").read_bytes() == figure
 
 
 def test_the_default_point_takes_the_tiers_default_seeds(sweeps: Path) -> None:
@@ -677,7 +719,6 @@ def test_a_store_that_is_gone_leaves_the_committed_summaries_in_charge(
     """Issue #19.5: a campaign resumed on a new machine, its MLflow store and datasets gone, must not train
     again what the committed run summaries report: their runs are finished (without making their data again),
     shared with the sweeps that plan the same run, and only a stress test, whose checkpoint is gone, trains."""
-    from gns_bench.report import write_report
     from gns_bench.sweep.runner import SUMMARISED
     from gns_bench.sweep.summaries import RESTORED_FROM, summary_path
 
@@ -696,9 +737,8 @@ def test_a_store_that_is_gone_leaves_the_committed_summaries_in_charge(
                                                                                           "stress"))
     reports = tmp_path / "reports"
     quiet = dict(runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
-    [trained] = run_sweep(domain, "smoke", data_root=tmp_path / "data", **quiet)
-    write_report(root / "domains" / "tiny.toml", "smoke", reports)
-    assert summary_path(reports, "domain-tiny", "smoke").is_file()
+    [trained] = run_sweep(domain, "smoke", data_root=tmp_path / "data", reports_root=reports, **quiet)
+    assert summary_path(reports, "domain-tiny", "smoke").is_file()  # the runner wrote it as the run finished
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'new.db'}")  # a new machine: nothing kept
     data = tmp_path / "new-data"
