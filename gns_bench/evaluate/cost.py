@@ -22,7 +22,7 @@ import torch
 from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.evaluate import metrics
-from gns_bench.evaluate.evaluate import ONE_STEP_BATCH, one_step_mse
+from gns_bench.evaluate.evaluate import one_step_mse
 from gns_bench.model.precision import dtype_of, network_dtype
 
 FRAMES_PER_TRAJECTORY = 3  # prediction steps timed on each trajectory (early, middle, late), after a warm-up
@@ -86,13 +86,16 @@ def _time_predictions(simulator, trajectory: Trajectory, frames: list[int], prec
     return (time.perf_counter() - started) / len(frames)
 
 
+TIMED_WINDOWS = 16  # one-step windows timed on the first trajectory
+
+
 def _one_step_seconds(simulator, trajectories: list[Trajectory], config: EvalConfig, device) -> float:
     """One batch of windows on the first trajectory, scaled to every trajectory's windows (by particles)."""
     first = trajectories[0]
     w = simulator.input_sequence_length
     started = time.perf_counter()
-    one_step_mse(simulator, first, ONE_STEP_BATCH, device, config.precision)
-    per_window_particle = (time.perf_counter() - started) / (min(ONE_STEP_BATCH, first.num_steps - w)
+    one_step_mse(simulator, first, TIMED_WINDOWS, device, config.precision)
+    per_window_particle = (time.perf_counter() - started) / (min(TIMED_WINDOWS, first.num_steps - w)
                                                             * first.num_particles)
     windows = [t.num_steps - w if config.one_step_windows is None else min(config.one_step_windows, t.num_steps - w)
                for t in trajectories]

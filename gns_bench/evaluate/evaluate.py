@@ -22,7 +22,9 @@ from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
 from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
-ONE_STEP_BATCH = 16  # windows per forward pass when measuring one-step error
+# One-step errors batch windows into one forward up to this many particles a graph (by device kind): on a CPU a
+# larger graph falls out of the caches and costs more a window, on a GPU a small one is launch-bound.
+ONE_STEP_PARTICLES = {"cpu": 2048, "cuda": 65536}
 GRAVITY_WINDOWS = 16  # true windows per trajectory on which `one_step_gravity_ratio` asks the model
 # Per-trajectory values that are NaN where they do not apply (no particle in free fall, no walls, the truth
 # barely falls): their summary is the mean over the trajectories where they do.
@@ -110,8 +112,9 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
     of the moving ones."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
     total, count, moving_total, moving_count = 0.0, 0, 0.0, 0
-    for start in range(0, len(frames), ONE_STEP_BATCH):
-        chunk = frames[start: start + ONE_STEP_BATCH]
+    per_forward = windows_per_forward(trajectory.num_particles, device)
+    for start in range(0, len(frames), per_forward):
+        chunk = frames[start: start + per_forward]
         batch = make_batch([trajectory], [(0, t) for t in chunk], w).to(device)
         dtype = dtype_of(precision)
         context = batch.context.to(dtype) if batch.context is not None else None
@@ -124,6 +127,12 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
         moving_total += float(error.sum())
         moving_count += error.numel()
     return total, count, moving_total, moving_count
+
+
+def windows_per_forward(num_particles: int, device: torch.device | str) -> int:
+    """How many windows of `num_particles` one forward of the one-step measurements takes on `device`."""
+    budget = ONE_STEP_PARTICLES.get(torch.device(device).type, ONE_STEP_PARTICLES["cpu"])
+    return max(1, budget // max(num_particles, 1))
 
 
 @torch.no_grad()
@@ -142,15 +151,17 @@ def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, 
         return float("nan")
     if len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
-    batch = make_batch([trajectory], [(0, t) for t in frames], w).to(device)
-    with network_dtype(simulator, dtype_of(precision)):
-        dtype = dtype_of(precision)
-        context = batch.context.to(dtype) if batch.context is not None else None
-        predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
-                                                    context, precision=precision)
-    window = batch.window.double()
-    ours = (predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy()
     n, d = trajectory.num_particles, trajectory.position.shape[2]
+    per_forward, dtype, chunks = windows_per_forward(n, device), dtype_of(precision), []
+    with network_dtype(simulator, dtype):
+        for start in range(0, len(frames), per_forward):
+            batch = make_batch([trajectory], [(0, t) for t in frames[start: start + per_forward]], w).to(device)
+            context = batch.context.to(dtype) if batch.context is not None else None
+            predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
+                                                        context, precision=precision)
+            window = batch.window.double()
+            chunks.append((predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy())
+    ours = np.concatenate(chunks)
     index = np.array(frames) - 1
     return diagnostics.gravity_ratio(ours.reshape(len(frames), n, d), true_acc[index], falling[index], gravity)
 

@@ -191,3 +191,25 @@ def test_paper_and_moving_mse_definitions_by_hand(untrained: LearnedSimulator, t
     assert squares[:, kinematic].mean() > 0  # kinematic particles' own predictions count
     assert row["one_step_mse"] == pytest.approx(squares.mean(), rel=1e-5)
     assert row["one_step_mse_moving"] == pytest.approx(squares[:, ~kinematic].mean(), rel=1e-5)
+
+
+def test_one_step_measurements_do_not_depend_on_how_windows_are_batched(
+        untrained: LearnedSimulator, tiny_dataset: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One-step errors and the one-step gravity ratio batch windows up to a particle budget a forward (a CPU's
+    caches, a GPU's launches): one window a forward, a few, or all in one give the same numbers."""
+    from gns_bench.evaluate import evaluate as ev
+
+    traj = load_split(tiny_dataset, "test")[0]
+    gravity = read_metadata(tiny_dataset).gravity
+    n = traj.num_particles
+    seen = []
+    for budget in (1, 3 * n, 10**9):
+        monkeypatch.setitem(ev.ONE_STEP_PARTICLES, "cpu", budget)
+        seen.append((ev.windows_per_forward(n, "cpu"), ev.one_step_mse(untrained, traj, 20),
+                     ev.one_step_gravity_ratio(untrained, traj, gravity)))
+    assert [s[0] for s in seen] == [1, 3, 10**9 // n]
+    for _, mse, ratio in seen[1:]:
+        assert mse.one_step_mse == pytest.approx(seen[0][1].one_step_mse, rel=1e-5)
+        assert mse.one_step_mse_moving == pytest.approx(seen[0][1].one_step_mse_moving, rel=1e-5)
+        assert ratio == pytest.approx(seen[0][2], rel=1e-4, abs=1e-6)
+    assert np.isfinite(seen[0][2])  # the tiny scene has particles in free fall to ask about
