@@ -234,6 +234,13 @@ def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
             ("static_share", "static", ".0%"), ("edges", "edges", "d"), ("static_edge_share", "within floor", ".0%"),
             ("encoded_s", "all encoded s", ".4f"), ("reused_s", "reused s", ".4f"), ("speedup", "speed-up", ".2f"),
             ("max_difference", "largest difference", ".1e")])
+    if results.get("one_step"):
+        lines += ["", "## Windows a one-step forward (`evaluate.windows_per_forward`)", "",
+                  "The one-step measurements' forward (fp32) with several windows of a scene batched into one "
+                  "graph: the time a window costs.", ""]
+        lines += _table(results["one_step"], [("particles", "N", "d"), ("windows", "windows", "d"),
+                                              ("seconds", "s a forward", ".3f"),
+                                              ("seconds_per_window", "s a window", ".3f")])
     figure = _plot(results, out_dir / "bench_scaling.png")
     lines += ["", f"![scaling]({figure.name})", ""]
     readme = out_dir / "README.md"
@@ -327,6 +334,14 @@ def _extra_checks(folder: Path) -> list[str]:
                      f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%} static, "
                      f"largest difference {max(r['max_difference'] for r in rows):.1e} "
                      f"([skips.md]({folder.name}/skips.md)).")
+    if (folder / "one_step.json").is_file():
+        rows = json.loads((folder / "one_step.json").read_text())
+        single = {r["particles"]: r["seconds_per_window"] for r in rows if r["windows"] == 1}
+        widest = [r for r in rows if r["windows"] == max(x["windows"] for x in rows)]
+        costs = "; ".join(f"{r['windows']} windows of {r['particles']} particles "
+                          f"{r['seconds_per_window'] / single[r['particles']]:.2f}x one window's time a window"
+                          for r in widest)
+        lines.append(f"- One-step forward with windows batched: {costs} ([one_step.md]({folder.name}/one_step.md)).")
     return [*lines, ""] if lines else []
 
 

@@ -212,7 +212,7 @@ def bench_dir(root: Path, device: str = "auto") -> Path:
 
 def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
               log_to_mlflow: bool = True) -> dict[str, Any]:
-    from gns_bench.bench import skips
+    from gns_bench.bench import one_step, skips
     from gns_bench.bench.report import write_bench_report
 
     settings = settings or BenchSettings()
@@ -234,6 +234,8 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     results["skips"] = skips.measure(settings.train_particles, repeats=settings.repeats)
     print("the static encodings' reuse...", flush=True)
     results["static_encodings"] = skips.measure_encodings(settings.train_particles, repeats=settings.repeats)
+    print("windows a one-step forward...", flush=True)
+    results["one_step"] = one_step.measure(repeats=settings.repeats)
     print("scaling in particle count...", flush=True)
     results["scaling"] = measure_scaling(settings)
     results["steadiness"] = measure_steadiness(results["train"], settings, device)
