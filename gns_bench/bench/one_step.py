@@ -53,14 +53,17 @@ def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
+    from gns_bench.devices import apply_allocator
     from gns_bench.tracking import hardware_description
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     args = parser.parse_args(argv)
+    allocator = apply_allocator(args.allocator)
     rows = measure(repeats=args.repeats)
-    text = markdown(rows, hardware_description("cpu"))
+    text = markdown(rows, f"{hardware_description('cpu')}; allocator: {allocator}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "one_step.md").write_text(text)
     (args.out / "one_step.json").write_text(json.dumps(rows, indent=1) + "\n")
