@@ -4,6 +4,7 @@ distributional metrics (MMD, optimal transport; paper App. B.4) and kinetic-ener
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -14,7 +15,7 @@ from tqdm import tqdm
 
 from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
-from gns_bench.data.windows import make_batch
+from gns_bench.data.windows import GraphBatch, make_batch
 from gns_bench.evaluate import diagnostics, metrics
 from gns_bench.evaluate import registry as metric_registry
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
@@ -112,21 +113,27 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
     of the moving ones."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
     total, count, moving_total, moving_count = 0.0, 0, 0.0, 0
-    per_forward = windows_per_forward(trajectory.num_particles, device)
-    for start in range(0, len(frames), per_forward):
-        chunk = frames[start: start + per_forward]
-        batch = make_batch([trajectory], [(0, t) for t in chunk], w).to(device)
-        dtype = dtype_of(precision)
-        context = batch.context.to(dtype) if batch.context is not None else None
-        predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch, context,
-                                                    precision=precision)
-        error = (predicted - batch.target).double().square().reshape(len(chunk), -1, trajectory.position.shape[2])
+    for batch, predicted in _one_step_predictions(simulator, trajectory, frames, w, device, precision):
+        windows = batch.window.shape[0] // trajectory.num_particles  # (`num_graphs` would sync a GPU)
+        error = (predicted - batch.target).double().square().reshape(windows, -1, trajectory.position.shape[2])
         total += float(error.sum())
         count += error.numel()
         error = error[:, moving.to(error.device)]
         moving_total += float(error.sum())
         moving_count += error.numel()
     return total, count, moving_total, moving_count
+
+
+def _one_step_predictions(simulator: LearnedSimulator, trajectory: Trajectory, frames: list[int], w: int,
+                          device: torch.device | str, precision: str) -> Iterator[tuple[GraphBatch, torch.Tensor]]:
+    """The clean windows ending at `frames`, `windows_per_forward` of them a forward, each batch with the
+    model's next positions (the caller sets the network's dtype)."""
+    dtype, per_forward = dtype_of(precision), windows_per_forward(trajectory.num_particles, device)
+    for start in range(0, len(frames), per_forward):
+        batch = make_batch([trajectory], [(0, t) for t in frames[start: start + per_forward]], w).to(device)
+        context = batch.context.to(dtype) if batch.context is not None else None
+        yield batch, simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
+                                                     context, precision=precision)
 
 
 def windows_per_forward(num_particles: int, device: torch.device | str) -> int:
@@ -152,13 +159,9 @@ def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, 
     if len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
     n, d = trajectory.num_particles, trajectory.position.shape[2]
-    per_forward, dtype, chunks = windows_per_forward(n, device), dtype_of(precision), []
-    with network_dtype(simulator, dtype):
-        for start in range(0, len(frames), per_forward):
-            batch = make_batch([trajectory], [(0, t) for t in frames[start: start + per_forward]], w).to(device)
-            context = batch.context.to(dtype) if batch.context is not None else None
-            predicted = simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
-                                                        context, precision=precision)
+    chunks = []
+    with network_dtype(simulator, dtype_of(precision)):
+        for batch, predicted in _one_step_predictions(simulator, trajectory, frames, w, device, precision):
             window = batch.window.double()
             chunks.append((predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy())
     ours = np.concatenate(chunks)
