@@ -200,3 +200,12 @@ def synthetic_train_step(simulator: LearnedSimulator, optimiser: torch.optim.Opt
 def build_model(config: ModelConfig, scene: Scene, device: torch.device, seed: int = 0) -> LearnedSimulator:
     torch.manual_seed(seed)
     return build_simulator(Config(model=config), scene.metadata).to(device)  # the paper's sigma_v, the scene's R
+
+
+def allocated_machine(allocator: str) -> str:
+    """Apply `train.allocator`'s setting `allocator` as training runs do, and name the machine with it (a
+    table caption of the stand-alone benches: `python -m gns_bench.bench.skips`, `.one_step`)."""
+    from gns_bench.devices import apply_allocator
+    from gns_bench.tracking import hardware_description
+
+    return f"{hardware_description('cpu')}; allocator: {apply_allocator(allocator)}"

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import Scene, allocated_machine, build_model, synthetic_scene, timed
 from gns_bench.config import ModelConfig
 
 WINDOWS = (1, 2, 4, 8, 16)
@@ -53,17 +53,14 @@ def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
-    from gns_bench.devices import apply_allocator
-    from gns_bench.tracking import hardware_description
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     args = parser.parse_args(argv)
-    allocator = apply_allocator(args.allocator)
+    machine = allocated_machine(args.allocator)
     rows = measure(repeats=args.repeats)
-    text = markdown(rows, f"{hardware_description('cpu')}; allocator: {allocator}")
+    text = markdown(rows, machine)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "one_step.md").write_text(text)
     (args.out / "one_step.json").write_text(json.dumps(rows, indent=1) + "\n")

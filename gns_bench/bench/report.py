@@ -319,21 +319,12 @@ def _extra_checks(folder: Path) -> list[str]:
             f"{r['precision']} {base['seconds_per_step'] / r['seconds_per_step']:.2f}x faster, minor page faults "
             f"{base['minor_faults_per_step']:,.0f} -> {r['minor_faults_per_step']:,.0f} a step" for r, base in kept)
             + f" ([allocator.md]({folder.name}/allocator.md)).")
-    if (folder / "skips.json").is_file():
-        rows = json.loads((folder / "skips.json").read_text())
-        skipping = [r for r in rows if r["kinematic_share"] > 0]
-        speedups, shares = [r["speedup"] for r in skipping], [r["kinematic_share"] for r in skipping]
-        lines.append("- Rollout forward with kinematic particles' work skipped (`eval.moving_only`): "
-                     f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%}"
-                     f" kinematic, largest difference {max(r['max_difference'] for r in rows):.1e} "
-                     f"([skips.md]({folder.name}/skips.md)).")
-    if (folder / "static_encodings.json").is_file():
-        rows = json.loads((folder / "static_encodings.json").read_text())
-        speedups, shares = [r["speedup"] for r in rows], [r["static_share"] for r in rows]
-        lines.append("- Rollout forward with a fixed floor's encodings reused (`eval.static_encodings`): "
-                     f"{min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-{max(shares):.0%} static, "
-                     f"largest difference {max(r['max_difference'] for r in rows):.1e} "
-                     f"([skips.md]({folder.name}/skips.md)).")
+    for file, share, what in (("skips.json", "kinematic_share", "with kinematic particles' work skipped "
+                                                                   "(`eval.moving_only`)"),
+                              ("static_encodings.json", "static_share", "with a fixed floor's encodings reused "
+                                                                        "(`eval.static_encodings`)")):
+        if (folder / file).is_file():
+            lines.append(_skip_line(json.loads((folder / file).read_text()), share, what, folder.name))
     if (folder / "one_step.json").is_file():
         rows = json.loads((folder / "one_step.json").read_text())
         single = {r["particles"]: r["seconds_per_window"] for r in rows if r["windows"] == 1}
@@ -343,6 +334,16 @@ def _extra_checks(folder: Path) -> list[str]:
                           for r in widest)
         lines.append(f"- One-step forward with windows batched: {costs} ([one_step.md]({folder.name}/one_step.md)).")
     return [*lines, ""] if lines else []
+
+
+def _skip_line(rows: list[dict[str, Any]], share: str, what: str, folder: str) -> str:
+    """The index line of one skip's rows (`bench/skips.py`): its speed-ups over the scenes where it skips
+    something (`share` > 0), and the largest difference it made."""
+    skipping = [r for r in rows if r[share] > 0]
+    speedups, shares = [r["speedup"] for r in skipping], [r[share] for r in skipping]
+    return (f"- Rollout forward {what}: {min(speedups):.2f}x-{max(speedups):.2f}x at {min(shares):.0%}-"
+            f"{max(shares):.0%} {share.removesuffix('_share')}, largest difference "
+            f"{max(r['max_difference'] for r in rows):.1e} ([skips.md]({folder}/skips.md)).")
 
 
 def write_bench_index(root: Path) -> Path:

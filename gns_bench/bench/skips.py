@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import Scene, allocated_machine, build_model, synthetic_scene, timed
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE
 from gns_bench.model.precision import autocast
@@ -159,9 +159,6 @@ def encodings_markdown(rows: list[dict[str, Any]], hardware: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
-    from gns_bench.devices import apply_allocator
-    from gns_bench.tracking import hardware_description
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--particles", type=int, default=2000)
@@ -169,10 +166,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     args = parser.parse_args(argv)
-    allocator = apply_allocator(args.allocator)
+    hardware = allocated_machine(args.allocator)
     rows = measure(args.particles, tuple(args.dataset), args.repeats)
     reused = measure_encodings(args.particles, args.repeats)
-    hardware = f"{hardware_description('cpu')}; allocator: {allocator}"
     text = markdown(rows, hardware) + "\n" + encodings_markdown(reused, hardware)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "skips.md").write_text(text)
