@@ -51,14 +51,14 @@ def record_runs(path: Path, sweep: str, tier: str, records: Iterable[tracking.Ru
     """Put FINISHED `records` into the summary at `path` (created if missing), each replacing the record of
     its run name; the other runs stay as they were. Returns the names written (none when every record was
     already there as it is)."""
-    held = read_run_summary(path)
+    payload = _read(path)
+    held = _records(path, payload)
     fresh = [r for r in records
              if r.status == "FINISHED" and (r.name not in held or _as_json(held[r.name]) != _as_json(r))]
     if not fresh:
         return []
     held.update({r.name: r for r in fresh})
-    extras = json.loads(path.read_text()).get("extras") if path.is_file() else None
-    write_run_summary(path, sweep, tier, held.values(), extras=extras)
+    write_run_summary(path, sweep, tier, held.values(), extras=payload.get("extras"))
     return [r.name for r in fresh]
 
 
@@ -75,11 +75,25 @@ def record_from_json(run: dict[str, Any]) -> tracking.RunRecord:
 def read_run_summary(path: Path) -> dict[str, tracking.RunRecord]:
     """A committed run summary by run name; empty when there is none. A file that is not one raises
     ValueError naming it."""
+    return _records(path, _read(path))
+
+
+def _read(path: Path) -> dict[str, Any]:
+    """The summary file's JSON ({} when there is none); ValueError naming it when it is not JSON."""
     if not path.is_file():
         return {}
     try:
-        records = [record_from_json(run) for run in json.loads(path.read_text())["runs"]]
-    except (ValueError, KeyError, TypeError) as exc:
+        return json.loads(path.read_text())
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a gns-bench run summary ({type(exc).__name__}: {exc})") from None
+
+
+def _records(path: Path, payload: dict[str, Any]) -> dict[str, tracking.RunRecord]:
+    if not payload:
+        return {}
+    try:
+        records = [record_from_json(run) for run in payload["runs"]]
+    except (KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a gns-bench run summary ({type(exc).__name__}: {exc})") from None
     return {record.name: record for record in records}
 

@@ -60,3 +60,14 @@ def test_a_summary_written_by_older_code_keeps_the_report_s_data(tmp_path: Path)
     assert read_kept(tmp_path) == {"rollouts": {"run_id": "y"}}  # the report's own file first
     write_kept(tmp_path, "s", "smoke", {})  # a file there is replaced, even by nothing
     assert read_kept(tmp_path) == {}
+
+
+@pytest.mark.parametrize("text", ["{not json", '{"sweep": "s"}', '{"runs": [{"name": "a"}]}', "[1, 2]"])
+def test_a_file_that_is_not_a_summary_is_refused_with_its_name(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "runs.json"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=f"{path}: not a gns-bench run summary"):
+        read_run_summary(path)
+    with pytest.raises(ValueError, match="not a gns-bench run summary"):
+        record_runs(path, "s", "smoke", [record("a", 1.0)])
+    assert path.read_text() == text  # nothing written over it
