@@ -177,3 +177,53 @@ def _write_cache(cache: dict[str, dict]) -> None:
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
     os.replace(tmp, path)
+
+
+# `eval.neighbour_skin = "auto"`: Verlet lists (model/neighbours.py) give a fresh search's edges in its order, so
+# the only question is time, and it depends on the scene: how fast particles move against R (how often the
+# lists go stale), how dense the graph is, the backend and the machine (on the 2-core CPUs the search is 1.6-2.9%
+# of a WATERDROP rollout step, on an H200 up to 59% of a 3D one). So a probe times each candidate on true frames.
+NEIGHBOUR_SKINS = (0.1, 0.25, 0.5)  # candidate skins, in connectivity radii
+SKIN_PROBE_FRAMES = 12  # consecutive true frames a probe segment walks through (one finder each)
+SKIN_PROBE_SEGMENTS = 3  # segments spread over the trajectory: its motion changes (blocks at rest, then falling)
+SKIN_MARGIN = 0.9  # a skin is chosen only when it takes at most this share of the plain search's time
+
+
+@dataclass(frozen=True)
+class SkinChoice:
+    skin: float  # 0: a fresh search every step
+    seconds_per_step: dict[float, float]  # candidate skin (0 included) -> seconds of neighbour finding a step
+    radius: float
+
+    def describe(self) -> str:
+        timings = ", ".join(f"{'none' if skin == 0 else f'{skin / self.radius:g} R'} {seconds * 1e3:.3g} ms"
+                            for skin, seconds in sorted(self.seconds_per_step.items()))
+        chosen = "none" if self.skin == 0 else f"{self.skin:.4g} ({self.skin / self.radius:g} R)"
+        return f"skin {chosen} (probed on true frames: {timings} a step)"
+
+
+def choose_neighbour_skin(make_finder: Callable[[float], Callable[[torch.Tensor], torch.Tensor]],
+                          positions: torch.Tensor, radius: float, *, skins: tuple[float, ...] = NEIGHBOUR_SKINS,
+                          frames: int = SKIN_PROBE_FRAMES, segments: int = SKIN_PROBE_SEGMENTS,
+                          margin: float = SKIN_MARGIN, clock: Callable[[], float] = time.perf_counter) -> SkinChoice:
+    """The skin to roll out with: each candidate (`skins` x radius, and none) walks `segments` runs of `frames`
+    consecutive true frames (`positions` [T, N, D]) through a fresh finder (`make_finder(skin)`: positions [N, D]
+    -> edges, as the rollout would search with that skin), twice; its time is the faster pass. A skin is chosen
+    when it beats none by `margin`, so noise does not pick one."""
+    count = positions.shape[0]
+    length = min(frames, count)
+    starts = sorted({round(i * (count - length) / max(segments, 1)) for i in range(segments)})
+    timings = {}
+    for skin in (0.0, *(s * radius for s in skins)):
+        passes = []
+        for _ in range(2):
+            started = clock()
+            for start in starts:
+                finder = make_finder(skin)
+                for frame in range(start, start + length):
+                    finder(positions[frame])
+            passes.append(clock() - started)
+        timings[skin] = min(passes) / (len(starts) * length)
+    best = min(timings, key=timings.get)
+    chosen = best if best > 0 and timings[best] <= margin * timings[0.0] else 0.0
+    return SkinChoice(chosen, timings, radius)

@@ -260,6 +260,13 @@ class DPIConfig:
 
 
 MonitorName = Literal["non_finite", "out_of_bounds", "energy_blowup", "density_collapse"]
+MONITORS: tuple[MonitorName, ...] = typing.get_args(MonitorName)
+# What an evaluation computes (`eval.metrics`): the one-step MSEs (paper Sec. 4.4); rollouts with their MSEs,
+# the constant-velocity baseline, the MSE at fixed horizons and the registered metrics of one's own; the
+# distributional metrics (App. B.4) and the kinetic-energy error; the physical diagnostics (gravity ratio, wall
+# passes, centre of mass). The last two score rollouts, so they come with "rollout".
+MetricGroup = Literal["one_step", "rollout", "distribution", "diagnostics"]
+METRIC_GROUPS: tuple[MetricGroup, ...] = typing.get_args(MetricGroup)
 
 
 @dataclass
@@ -269,6 +276,8 @@ class EvalConfig:
     split: Literal["valid", "test"] = "test"
     max_trajectories: int | None = None  # None: every trajectory of the split
     rollout_steps: int | None = None  # None: to the end of each trajectory
+    # Only these are computed (METRIC_GROUPS); without "rollout" nothing is rolled out (a one-step-only curve).
+    metrics: list[MetricGroup] = field(default_factory=lambda: list(METRIC_GROUPS))
     one_step_windows: int | None = None  # windows per trajectory for one-step MSE; None: all
     # Distributional metrics (paper App. B.4): MMD and optimal transport between the predicted and true
     # clouds of moving particles, at `distribution_steps` evenly spaced rollout steps (the last included).
@@ -278,14 +287,20 @@ class EvalConfig:
     distribution_max_particles: int | None = 8000
     mmd_bandwidth_radii: float = 2.0  # Gaussian kernel width h = this x connectivity radius R
     # Rollouts: health monitors (always on unless switched off), Verlet lists, reduced precision.
-    monitors: bool = True  # watch for NaN/inf, escape from the bounds, energy blow-up, density collapse
+    # Watch for NaN/inf, escape from the bounds, energy blow-up, density collapse: true (all four), false
+    # (none), or a list of the ones to run (MONITORS); only those run, and `stop_on` applies among them.
+    monitors: bool | list[MonitorName] = True
     # The monitors that end a rollout; the others only flag it (tag `<split>/rollouts_flagged`) and it runs on.
     # The paper scores whole rollouts, so a particle through a wall is error its MSE counts. NaN and runaway
     # energy leave nothing worth scoring, and a collapsed patch crowds every particle's neighbourhood: GOOP
     # test rollouts run on past one averaged 0.73-1.43 s a step, against 0.12-0.18 s without (small tier).
     stop_on: list[MonitorName] = field(default_factory=lambda: ["non_finite", "energy_blowup",
                                                                 "density_collapse"])
-    neighbour_skin: float = 0.0  # > 0: Verlet neighbour lists with this skin (same edges, fewer searches)
+    # Verlet neighbour lists (model/neighbours.py `VerletNeighbours`): the same edges in the same order, fewer
+    # searches. > 0: this skin; 0: a fresh search every step; "auto": a probe on the first trajectory's true
+    # frames times each candidate skin against none and keeps the fastest (`autotune.choose_neighbour_skin`;
+    # the run's tag `<split>/neighbour_skin` says what it chose and why).
+    neighbour_skin: float | Literal["auto"] = "auto"
     # Rollouts skip what kinematic particles would cost beyond their encoding and their messages out (their
     # positions come from the data): the decoder, the last node update, the last block's messages into them.
     moving_only: bool = True
@@ -314,7 +329,14 @@ class EvalConfig:
         _require(self.distribution_max_particles is None or self.distribution_max_particles >= 2,
                  "eval.distribution_max_particles", "must be >= 2")
         _require(self.mmd_bandwidth_radii > 0, "eval.mmd_bandwidth_radii", "must be > 0")
-        _require(self.neighbour_skin >= 0, "eval.neighbour_skin", "must be >= 0")
+        _require(self.neighbour_skin == "auto" or self.neighbour_skin >= 0, "eval.neighbour_skin",
+                 "must be >= 0 or \"auto\"")
+        _require(bool(self.metrics) and all(m in METRIC_GROUPS for m in self.metrics), "eval.metrics",
+                 f"must name at least one of {list(METRIC_GROUPS)}, got {self.metrics!r}")
+        _require("rollout" in self.metrics or not {"distribution", "diagnostics"} & set(self.metrics),
+                 "eval.metrics", "\"distribution\" and \"diagnostics\" score rollouts: list \"rollout\" with them")
+        _require(isinstance(self.monitors, bool) or all(m in MONITORS for m in self.monitors), "eval.monitors",
+                 f"must be true, false or a list of {list(MONITORS)}, got {self.monitors!r}")
 
 
 STRESS_TESTS = ("horizon", "precision", "perturbation", "scale")

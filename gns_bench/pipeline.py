@@ -80,6 +80,8 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
         writer.writeheader()
         writer.writerows(evaluation.per_trajectory)
     paths.append(table)
+    if not evaluation.rollouts:  # `eval.metrics` without "rollout": nothing to draw
+        return paths
     ranked = sorted(range(len(evaluation.per_trajectory)),
                     key=lambda i: evaluation.per_trajectory[i]["rollout_mse"])
     for label, index in (("best", ranked[0]), ("worst", ranked[-1])):
@@ -92,7 +94,7 @@ def write_evaluation_artifacts(evaluation: Evaluation, out_dir: Path, bounds: li
 
 
 # Tags an evaluation may set; a re-evaluation removes the ones it does not set again
-EVALUATION_TAGS = ("rollouts_stopped", "rollouts_flagged", "ot_method")
+EVALUATION_TAGS = ("rollouts_stopped", "rollouts_flagged", "ot_method", "rollout_compile", "neighbour_skin")
 
 
 def _log_evaluation(run: tracking.Run, evaluation: Evaluation, out_dir: Path, bounds: list[list[float]],

@@ -58,16 +58,19 @@ def evaluation_cost(simulator, trajectories: list[Trajectory], config: EvalConfi
         return EvaluationCost(0.0, 0, 0.0, 0.0)
     simulator.eval()
     rollout_seconds, rollout_steps = 0.0, 0
+    rolled_out = trajectories if "rollout" in config.metrics else []  # `eval.metrics`: only what is computed
     with network_dtype(simulator, dtype_of(config.precision)):
-        for index, trajectory in enumerate(trajectories):
+        for index, trajectory in enumerate(rolled_out):
             length = _rollout_length(trajectory, config, w)
             frames = np.linspace(w, w + length - 1, FRAMES_PER_TRAJECTORY).round().astype(int).tolist()
             if index == 0:  # warm-up: allocation, first-call dispatch
                 _time_predictions(simulator, trajectory, frames[:1], config.precision, device)
             rollout_seconds += _time_predictions(simulator, trajectory, frames, config.precision, device) * length
             rollout_steps += length
-    return EvaluationCost(rollout_seconds, rollout_steps, _one_step_seconds(simulator, trajectories, config, device),
-                          _distribution_seconds(trajectories, config, simulator.radius))
+    one_step = _one_step_seconds(simulator, trajectories, config, device) if "one_step" in config.metrics else 0.0
+    distribution = (_distribution_seconds(trajectories, config, simulator.radius)
+                    if "distribution" in config.metrics else 0.0)
+    return EvaluationCost(rollout_seconds, rollout_steps, one_step, distribution)
 
 
 def _time_predictions(simulator, trajectory: Trajectory, frames: list[int], precision: str, device) -> float:

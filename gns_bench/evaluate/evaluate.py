@@ -19,7 +19,8 @@ from gns_bench.data.windows import GraphBatch, make_batch
 from gns_bench.evaluate import diagnostics, metrics
 from gns_bench.evaluate import registry as metric_registry
 from gns_bench.evaluate.monitors import arm, default_monitors, flags
-from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout
+from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout, static_particles
+from gns_bench.model.neighbours import radius_graph, rollout_neighbours
 from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
@@ -227,11 +228,15 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     diagnostics (`physical_diagnostics`, `one_step_gravity_ratio`); without gravity its diagnostics are NaN."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
+    wanted = set(config.metrics)
+    if "rollout" not in wanted:  # one-step errors only: nothing to roll out
+        return _one_step_only(simulator, trajectories, config, device, progress, gravity)
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
     rolled_out_by, compile_choice = rollout_model(simulator, trajectories, config, device)
+    skin, skin_choice = neighbour_skin(simulator, trajectories, config, device)
     for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
-        monitors = (arm(health_monitors(simulator, traj, config.rollout_steps, bounds), config.stop_on)
-                    if config.monitors else [])
+        monitors = arm(health_monitors(simulator, traj, config.rollout_steps, bounds, config.monitors),
+                       config.stop_on)
         w = simulator.input_sequence_length
         length = traj.num_steps - w if config.rollout_steps is None else min(config.rollout_steps, traj.num_steps - w)
         steps_bar = tqdm(total=length, desc=f"trajectory {index} rollout", unit="step", leave=False,
@@ -239,7 +244,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         run_hooks = (*hooks, lambda state, bar=steps_bar: bar.update(1), *monitors)
         started = time.perf_counter()
         result = rollout(rolled_out_by, traj, config.rollout_steps, run_hooks, device,
-                         neighbour_skin=config.neighbour_skin, precision=config.precision, bounds=bounds,
+                         neighbour_skin=skin, precision=config.precision, bounds=bounds,
                          moving_only=config.moving_only, static_encodings=config.static_encodings)
         rollout_seconds = time.perf_counter() - started
         steps_bar.set_description(f"trajectory {index} one-step and distributional metrics")
@@ -252,46 +257,93 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         trip_steps = [trip.step for trip in trips]
         row = {
             "trajectory": index,
-            **one_step_mse(simulator, traj, config.one_step_windows, device)._asdict(),
+            **(one_step_mse(simulator, traj, config.one_step_windows, device)._asdict()
+               if "one_step" in wanted else {}),
             **rollout_errors(result, traj.num_steps),
             "rollout_steps": k,
             "rollout_seconds_per_step": rollout_seconds / max(k, 1),
             "rollout_stopped": float(result.stopped_at is not None),
             "rollout_flagged": float(bool(trips)),
             "steps_before_trip": float(diagnostics.steps_before_trip(k, result.stopped_at, trip_steps)),
-            "gravity_ratio": (one_step_gravity_ratio(simulator, traj, gravity, device=device,
-                                                     precision=config.precision)
-                              if gravity is not None else float("nan")),
-            **physical_diagnostics(result, bounds if bounds is not None else simulator.bounds.tolist(), walls,
-                                   gravity, simulator.radius),
         }
+        if "diagnostics" in wanted:
+            row["gravity_ratio"] = (one_step_gravity_ratio(simulator, traj, gravity, device=device,
+                                                           precision=config.precision)
+                                    if gravity is not None else float("nan"))
+            row.update(physical_diagnostics(result, bounds if bounds is not None else simulator.bounds.tolist(),
+                                            walls, gravity, simulator.radius))
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
             row["context"] = float(traj.step_context[0, 0])
         row.update(metric_registry.compute_all(result))  # metrics of one's own (evaluate/registry.py)
         horizons = metrics.mse_at_horizons(result.predicted, result.ground_truth[:k], result.scored_mask(k))
         row.update({f"mse_h{h}": value for h, value in horizons.items()})
-        distributional, method = distributional_metrics(result, config, simulator.radius, device)
-        row.update(distributional)
-        if method:
-            methods.add(method)
+        if "distribution" in wanted:
+            distributional, method = distributional_metrics(result, config, simulator.radius, device)
+            row.update(distributional)
+            if method:
+                methods.add(method)
         steps_bar.close()
         per_traj.append(row)
         results.append(result)
-    summary = {}
-    for key in dict.fromkeys(key for row in per_traj for key in row):  # a key only some trajectories reach too
-        if key not in ("trajectory", "context"):  # (`mse_h100` of the rollouts that got to step 100)
-            values = [row[key] for row in per_traj if key in row]
-            applicable = [v for v in values if np.isfinite(v)] if key in NAN_WHERE_NOT_APPLICABLE else values
-            summary[key] = float(np.mean(applicable)) if applicable else float("nan")
-    summary["num_trajectories"] = float(len(per_traj))
     tags = {"ot_method": ",".join(sorted(methods))} if methods else {}
     if compile_choice:  # eval.compile = "auto": what the probe chose, and its timings
         tags["rollout_compile"] = compile_choice
+    if skin_choice:  # eval.neighbour_skin = "auto": likewise
+        tags["neighbour_skin"] = skin_choice
     if stops:  # the report shows where monitors stopped rollouts
         tags["rollouts_stopped"] = "; ".join(stops)[:5000]
     if flagged:  # and where they flagged the ones that ran on
         tags["rollouts_flagged"] = "; ".join(flagged)[:5000]
-    return Evaluation(summary, results, per_traj, tags)
+    return Evaluation(summarise(per_traj), results, per_traj, tags)
+
+
+def summarise(per_trajectory: list[dict[str, float]]) -> dict[str, float]:
+    """The means over trajectories of every per-trajectory value (a key only some trajectories reach too:
+    `mse_h100` of the rollouts that got to step 100), NaN-where-not-applicable values over those where they
+    apply, and the number of trajectories."""
+    summary = {}
+    for key in dict.fromkeys(key for row in per_trajectory for key in row):
+        if key not in ("trajectory", "context"):
+            values = [row[key] for row in per_trajectory if key in row]
+            applicable = [v for v in values if np.isfinite(v)] if key in NAN_WHERE_NOT_APPLICABLE else values
+            summary[key] = float(np.mean(applicable)) if applicable else float("nan")
+    summary["num_trajectories"] = float(len(per_trajectory))
+    return summary
+
+
+def _one_step_only(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
+                   device: torch.device | str, progress: bool, gravity: list[float] | None) -> Evaluation:
+    """`eval.metrics = ["one_step"]`: the one-step MSEs of each trajectory, and no rollout."""
+    rows = [{"trajectory": index, **one_step_mse(simulator, traj, config.one_step_windows, device)._asdict()}
+            for index, traj in enumerate(tqdm(trajectories, desc="evaluate (one-step)", unit="traj",
+                                              disable=not progress))]
+    return Evaluation(summarise(rows), [], rows, {})
+
+
+def neighbour_skin(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
+                   device: torch.device | str = "cpu") -> tuple[float, str]:
+    """The Verlet skin the rollouts use, and what an "auto" probe chose ("" when the skin was given): the probe
+    walks the first trajectory's true frames through each candidate (`autotune.choose_neighbour_skin`)."""
+    if config.neighbour_skin != "auto":
+        return float(config.neighbour_skin), ""
+    first = trajectories[0] if trajectories else None
+    if first is None or not simulator.uses_edges or first.has_inflow:
+        return 0.0, "none (nothing to probe: no edges, an inflow scene, or no trajectory)"
+    from gns_bench import autotune
+
+    w = simulator.input_sequence_length
+    truth = torch.from_numpy(first.position[w - 1:]).to(device, dtype_of(config.precision))
+    types = torch.from_numpy(first.particle_type).to(device)
+    static = static_particles(torch.from_numpy(first.position).to(device), types)
+    backend, radius, self_edges = simulator.neighbour_backend, simulator.radius, simulator.self_edges
+
+    def finder(skin: float):
+        found = rollout_neighbours(radius, backend, self_edges, skin, truth[0], static)
+        return found if found is not None else (
+            lambda position: radius_graph(position, radius, backend=backend, self_edges=self_edges))
+
+    choice = autotune.choose_neighbour_skin(finder, truth, radius)
+    return choice.skin, choice.describe()
 
 
 def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
@@ -326,17 +378,20 @@ def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], c
 
 
 def health_monitors(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int | None,
-                    bounds: list[list[float]] | None = None) -> list:
-    """The default monitors for one trajectory, with its ground-truth kinetic energy and positions as the
-    references (in inflow scenes particles not yet present follow the data, in the rollout as in the
-    reference)."""
+                    bounds: list[list[float]] | None = None, which: bool | list[str] = True) -> list:
+    """The monitors `which` names (`eval.monitors`: true for the default four, false for none) for one
+    trajectory, with its ground-truth kinetic energy and positions as the references (in inflow scenes
+    particles not yet present follow the data, in the rollout as in the reference)."""
+    if which is False or (isinstance(which, list) and not which):
+        return []
     w = simulator.input_sequence_length
     truth = trajectory.position[w - 1: w + (num_steps if num_steps is not None else trajectory.num_steps)]
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
     reference = metrics.kinetic_energy(truth[1:], truth[0], moving) if len(truth) > 1 else None
     window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1)
-    return default_monitors(bounds if bounds is not None else simulator.bounds.tolist(), simulator.radius, window,
-                            torch.from_numpy(moving), reference, truth[1:])
+    monitors = default_monitors(bounds if bounds is not None else simulator.bounds.tolist(), simulator.radius,
+                                window, torch.from_numpy(moving), reference, truth[1:])
+    return monitors if which is True else [m for m in monitors if m.name in which]
 
 
 def save_rollouts(evaluation: Evaluation, path: str | Path) -> Path:

@@ -14,7 +14,7 @@ import torch
 
 from gns_bench.data.format import Trajectory
 from gns_bench.evaluate.result import RolloutResult, RolloutStopped
-from gns_bench.model.neighbours import StaticAwareNeighbours, VerletNeighbours
+from gns_bench.model.neighbours import rollout_neighbours
 from gns_bench.model.precision import dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 from gns_bench.model.static_encodings import StaticEncodings
@@ -30,6 +30,11 @@ class RolloutState:
 
 
 Hook = Callable[[RolloutState], None]
+
+
+def static_particles(truth: torch.Tensor, particle_type: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the kinematic particles that never move over the frames `truth` [T, N, D] (fixed boundaries)."""
+    return (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic_mask(particle_type)
 
 
 @torch.no_grad()
@@ -65,16 +70,11 @@ def rollout(simulator: LearnedSimulator, trajectory: Trajectory, num_steps: int 
     birth = (torch.from_numpy(trajectory.birth_step).to(device) if trajectory.has_inflow else None)
     window = truth[:w].transpose(0, 1).contiguous()  # [N, W, D]
     predicted, stopped_at, reason, stopped_by = [], None, None, None
-    neighbours = None
-    static = (truth == truth[:1]).all(dim=2).all(dim=0) & kinematic[:, 0]
-    if birth is not None:
-        pass  # the particle set changes: a fresh search every step over the particles present
-    elif neighbour_skin > 0 and simulator.uses_edges:
-        neighbours = VerletNeighbours(simulator.radius, neighbour_skin, simulator.neighbour_backend,
-                                      simulator.self_edges)
-    elif reuse_static_edges and simulator.uses_edges and bool(static.any()) and not bool(static.all()):
-        neighbours = StaticAwareNeighbours(truth[0], static, simulator.radius, simulator.neighbour_backend,
-                                           simulator.self_edges)
+    static = static_particles(truth, particle_type)
+    neighbours = None  # inflow: the particle set changes, a fresh search every step over the particles present
+    if birth is None and simulator.uses_edges:
+        neighbours = rollout_neighbours(simulator.radius, simulator.neighbour_backend, simulator.self_edges,
+                                        neighbour_skin, truth[0], static if reuse_static_edges else None)
     skip = {"moving_only": True} if moving_only and getattr(simulator, "predicts_moving_only", False) else {}
     if (static_encodings and birth is None and getattr(simulator, "caches_static_encodings", False)
             and bool(static.any()) and not bool(static.all())):

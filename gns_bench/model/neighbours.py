@@ -211,3 +211,15 @@ class StaticAwareNeighbours:
         if self.self_edges:
             return radius_graph_from(senders, receivers, positions.shape[0], positions.device)
         return _sorted(senders, receivers, positions.shape[0])
+
+
+def rollout_neighbours(radius: float, backend: str, self_edges: bool, skin: float,
+                       first_position: torch.Tensor | None = None, static_mask: torch.Tensor | None = None):
+    """The neighbour finder a rollout calls each step (positions [N, D] -> edges [2, E]), or None for a fresh
+    `radius_graph` every step: Verlet lists with `skin` > 0; else, where some but not all particles never move
+    (`static_mask`, at `first_position`), `StaticAwareNeighbours`. All give a fresh search's edges and order."""
+    if skin > 0:
+        return VerletNeighbours(radius, skin, backend, self_edges)
+    if static_mask is not None and bool(static_mask.any()) and not bool(static_mask.all()):
+        return StaticAwareNeighbours(first_position, static_mask, radius, backend, self_edges)
+    return None

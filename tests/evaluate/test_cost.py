@@ -69,3 +69,11 @@ def test_the_estimate_counts_every_step_window_and_distribution_call(simulator: 
 def test_the_estimate_runs_on_the_real_clock(simulator: LearnedSimulator, tiny_dataset: Path) -> None:
     estimate = cost.evaluation_cost(simulator, load_split(tiny_dataset, "test"), EvalConfig(max_trajectories=1))
     assert estimate.rollout_steps > 0 and estimate.rollout_seconds > 0 and estimate.distribution_seconds > 0
+
+
+def test_the_estimate_counts_only_the_metrics_configured(simulator: LearnedSimulator, tiny_dataset: Path) -> None:
+    trajectories = load_split(tiny_dataset, "test")
+    one_step = cost.evaluation_cost(simulator, trajectories, EvalConfig(max_trajectories=1, metrics=["one_step"]))
+    assert one_step.one_step_seconds > 0 and one_step.rollout_seconds == 0 and one_step.distribution_seconds == 0
+    rollout = cost.evaluation_cost(simulator, trajectories, EvalConfig(max_trajectories=1, metrics=["rollout"]))
+    assert rollout.rollout_seconds > 0 and rollout.one_step_seconds == 0 and rollout.distribution_seconds == 0

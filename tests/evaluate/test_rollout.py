@@ -63,7 +63,7 @@ def test_constant_velocity_baseline_is_exact_for_uniform_motion() -> None:
 
 def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_dataset: Path,
                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    from gns_bench.evaluate import rollout as rollout_module
+    from gns_bench.model import neighbours
     from gns_bench.model.neighbours import VerletNeighbours
 
     made: list[VerletNeighbours] = []
@@ -73,7 +73,7 @@ def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_da
             super().__init__(*args, **kwargs)
             made.append(self)
 
-    monkeypatch.setattr(rollout_module, "VerletNeighbours", Recorded)
+    monkeypatch.setattr(neighbours, "VerletNeighbours", Recorded)
     traj = load_split(tiny_dataset, "test")[0]
     fresh = rollout(untrained, traj, 30)
     assert not made
