@@ -333,7 +333,23 @@ def _extra_checks(folder: Path) -> list[str]:
                           f"{r['seconds_per_window'] / single[r['particles']]:.2f}x one window's time a window"
                           for r in widest)
         lines.append(f"- One-step forward with windows batched: {costs} ([one_step.md]({folder.name}/one_step.md)).")
+    if (folder / "evaluation.json").is_file():
+        lines += _evaluation_lines(json.loads((folder / "evaluation.json").read_text()), folder.name)
     return [*lines, ""] if lines else []
+
+
+def _evaluation_lines(results: dict[str, Any], folder: str) -> list[str]:
+    """The index lines of the evaluation's own switches (`bench/evaluation.py`): what each metric selection
+    costs against all four groups, and what the Verlet probe chose and saved."""
+    full = {r["dataset"]: r["seconds"] for r in results["selections"] if r["selection"] == "all four"}
+    costs = "; ".join(f"{r['dataset']} {r['selection']} {r['seconds'] / full[r['dataset']]:.2f}x"
+                      for r in results["selections"] if r["selection"] != "all four")
+    skins = "; ".join(f"{r['dataset']} skin {r['chosen_skin_radii']:g} R, search {r['speedup']:.2f}x "
+                      f"({r['search_share']:.1%} of a step), {'same' if r['same_edges'] else 'DIFFERENT'} edges"
+                      for r in results["skins"])
+    return [f"- Evaluation by `eval.metrics`, against all four groups: {costs} ([evaluation.md]({folder}/"
+            f"evaluation.md)).", f"- Verlet lists by the probe (`eval.neighbour_skin = \"auto\"`): {skins} "
+            f"([evaluation.md]({folder}/evaluation.md))."]
 
 
 def _skip_line(rows: list[dict[str, Any]], share: str, what: str, folder: str) -> str:
