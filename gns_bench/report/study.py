@@ -10,9 +10,11 @@ import math
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import NullFormatter  # noqa: E402
 
 from gns_bench.report.cells import (  # noqa: E402
     MISSING,
@@ -25,6 +27,8 @@ from gns_bench.report.cells import (  # noqa: E402
     steps_covered,
 )
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
+from gns_bench.report.reference import domain_reference  # noqa: E402
+from gns_bench.report.trend import PowerLaw, fit_power_law, settled_step  # noqa: E402
 from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 
 # What the error-against-time figure draws: the rollout MSE over constant velocity's on the same steps (like for
@@ -167,6 +171,138 @@ def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | No
     return path
 
 
+GRAVITY_TOLERANCE = 0.1  # a block falls at g when its gravity ratio is within 10% of 1
+FIT_FROM = 0.5  # the power law is fitted from half the last evaluated step on: the early transient left out
+
+
+def step_points(row: RunRow, metric: str) -> list[tuple[float, float]]:
+    """(step, value) of `curve/<metric>`, finite values only."""
+    return [(step, value) for step, value in (row.record.curves.get(f"curve/{metric}", []) if row.record else [])
+            if math.isfinite(value)]
+
+
+def seconds_per_step(row: RunRow) -> float | None:
+    """Training seconds a step at the run's last evaluated point (`curve/train_seconds`)."""
+    points = row.record.curves.get("curve/train_seconds", []) if row.record else []
+    return points[-1][1] / points[-1][0] if points and points[-1][0] > 0 else None
+
+
+def _settled(row: RunRow, metric: str) -> str:
+    points = step_points(row, metric)
+    if not points:
+        return "—"
+    step = settled_step(points, 1.0, GRAVITY_TOLERANCE)
+    if step is not None:
+        return f"from step {step:,.0f}"
+    late = [v for s, v in points if s >= FIT_FROM * points[-1][0]]
+    return (f"not by step {points[-1][0]:,.0f} (last {fmt(points[-1][1])}; {min(late):.2f} to {max(late):.2f} over "
+            "the second half)")
+
+
+def _prediction(fit: PowerLaw | None, paper: float | None, per_step: float | None,
+                last: tuple[float, float]) -> tuple[str, str]:
+    if fit is None:
+        return "—", "—"
+    interval = (f" ({fit.exponent_interval[0]:.2f} to {fit.exponent_interval[1]:.2f})"
+                if fit.exponent_interval else "")
+    law = f"{fit.exponent:.2f}{interval} over steps {fit.first_step:,.0f}-{fit.last_step:,.0f} ({fit.points} points)"
+    if paper is None:
+        return law, "no paper figure"
+    if last[1] <= paper:
+        return law, f"reached: {fmt(last[1])} at step {last[0]:,.0f}"
+    steps = fit.steps_to_reach(paper)
+    if steps is None:
+        return law, "no falling trend to extrapolate (the exponent's interval reaches 0)"
+    hours = f", {steps * per_step / 3600:,.0f} h at its {per_step:.2f} s/step" if per_step else ""
+    return law, f"{steps:,.3g} steps{hours}"
+
+
+# What the trend section fits: the paper's one-step MSE (Table 1 gives its figure) and the MSE over the first 10
+# rollout steps, which every rollout reaches (on the cpu-tier data the one-step MSE flattens early while this
+# one still falls: reports/study-gravity_curve).
+TREND_METRICS = (("one_step_mse", "one-step MSE"), ("mse_h10", "MSE over rollout steps 1-10"))
+
+
+def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -> list[str]:
+    """Where the curves go: for each run and `TREND_METRICS` metric a power law against steps and, for the
+    one-step MSE, the budget it predicts for the paper's figure (Table 1); the step from which the gravity ratios
+    stay within 10% of 1; and a log-log figure of the curves, their fits and the paper's figure."""
+    rows = [row for group in groups.values() for row in group if step_points(row, "one_step_mse")]
+    if not rows:
+        return []
+    reference = domain_reference(domain)
+    paper = {"one_step_mse": reference.one_step_mse if reference else None}
+    header = ("| run | metric | evaluated to step | value there | exponent of steps (95% interval), fitted | steps "
+              "to the paper's figure, predicted | hardware |")
+    lines = ["## Where the curves go", "",
+             f"Each error against training steps (on the validation trajectories the curve evaluates), with a power "
+             f"law fitted by least squares in log-log from half the last evaluated step on (the early transient left "
+             f"out); the one-step MSE's law extrapolated to the paper's one-step MSE for "
+             f"{reference.name if reference else domain} ({fmt(paper['one_step_mse'])}, Table 1). The paper's "
+             f"figure was measured on its own data: our solver's scenes are not its scenes, so the prediction says "
+             f"where this curve's trend reaches that scale, not that it would reproduce the paper; an "
+             f"extrapolation over a decade or more is a guess with the interval shown.", "",
+             header, "|" + "---|" * header.count(" | ") + "---|"]
+    fits: dict[tuple[str, str], PowerLaw | None] = {}
+    for row in rows:
+        for metric, label in TREND_METRICS:
+            points = step_points(row, metric)
+            if not points:
+                continue
+            fits[row.planned.name, metric] = fit = fit_power_law(points, FIT_FROM)
+            law, prediction = _prediction(fit, paper.get(metric), seconds_per_step(row), points[-1])
+            lines.append(f"| {row.planned.name} | {label} | {points[-1][0]:,.0f} | {fmt(points[-1][1])} | {law} | "
+                         f"{prediction} | {machines([row]) or '—'} |")
+    gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout |", "|---|---|---|"]
+    gravity += [f"| {row.planned.name} | {_settled(row, 'gravity_ratio')} | {_settled(row, 'rollout_gravity_ratio')} |"
+                for row in rows]
+    figure = trend_figure(rows, fits, paper["one_step_mse"], out_dir / "trend.png")
+    return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
+            f"When the blocks fall at g: the first evaluated step from which each gravity ratio stays within "
+            f"{GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings (its range over the "
+            f"second half of the curve).", "", *gravity, ""]
+
+
+def trend_figure(rows: list[RunRow], fits: dict[tuple[str, str], PowerLaw | None], paper: float | None,
+                 path: Path) -> Path:
+    """Each `TREND_METRICS` error against steps and against training hours, log-log (a row of panels each),
+    each run's fit dashed and the paper's one-step figure dotted."""
+    fig, axes = plt.subplots(len(TREND_METRICS), 2, figsize=(9, 3.2 * len(TREND_METRICS)), squeeze=False)
+    colours = plt.get_cmap("tab10")
+    for (metric, label), (by_steps, by_time) in zip(TREND_METRICS, axes, strict=True):
+        for index, row in enumerate(rows):
+            points = [(step, value) for step, value in step_points(row, metric) if step > 0]  # log axes
+            if not points:
+                continue
+            seconds = dict(row.record.curves.get("curve/train_seconds", []))
+            colour = colours(index % 10)
+            by_steps.plot(*zip(*points, strict=True), marker="o", ms=3, lw=1, color=colour, label=row.planned.name)
+            timed = [(seconds[s] / 3600, v) for s, v in points if seconds.get(s, 0) > 0]
+            if timed:
+                by_time.plot(*zip(*timed, strict=True), marker="o", ms=3, lw=1, color=colour)
+            fit, per_step = fits.get((row.planned.name, metric)), seconds_per_step(row)
+            if fit is not None:
+                reach = fit.steps_to_reach(paper) if paper and metric == "one_step_mse" else None
+                line = np.geomspace(fit.first_step, min(reach, 100 * fit.last_step) if reach else 3 * fit.last_step)
+                by_steps.plot(line, fit.value_at(line), color=colour, ls="--", lw=0.8)
+                if per_step:
+                    by_time.plot(line * per_step / 3600, fit.value_at(line), color=colour, ls="--", lw=0.8)
+        for ax, x_label in ((by_steps, "training steps"), (by_time, "training time (h)")):
+            if paper and metric == "one_step_mse":
+                ax.axhline(paper, color="black", ls=":", lw=1, label="paper (Table 1)" if ax is by_steps else None)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap
+            ax.set_xlabel(x_label)
+            ax.set_ylabel(label, fontsize=8)
+            ax.grid(alpha=0.3, which="both")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
 def unfinished_curves(rows: list[RunRow]) -> list[str]:
     """A sentence naming the runs whose curves end before their budget (still training, or stopped), with the
     last step each evaluated; none when every drawn curve is a finished run's."""
@@ -211,4 +347,4 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
                   "1 (dotted) is the truth, 0 a block that hovers.", "",
                   f"![physical diagnostics against training steps]({diagnostics.name})", "",
                   *(unfinished_curves(rows) if figure is None else [])]
-    return lines
+    return lines + trend_section(groups, plan.domain, out_dir) if plan else lines

@@ -574,6 +574,13 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     assert "**Winner.**" not in text  # smoke: a pipeline check names no winner
     assert "![error against training time](error_vs_time.png)" in text
     assert (tmp_path / "reports" / "study-two" / "smoke" / "error_vs_time.png").stat().st_size > 5000
+    where = text[text.index("## Where the curves go"):]  # each run's trend, fitted from its curve
+    assert "| candidate=plain-seed0 | one-step MSE | 20 |" in where
+    gravity = where[where.index("| run | gravity ratio within 10% of 1"):].split("\n\n")[0].splitlines()[2:]
+    assert sorted(line.split(" | ")[0] for line in gravity) == ["| candidate=more-data-seed0",
+                                                                 "| candidate=plain-seed0"]
+    assert all(("from step " in line or "not by step 20 (last" in line) for line in gravity)
+    assert (tmp_path / "reports" / "study-two" / "smoke" / "trend.png").stat().st_size > 5000
     # the run summary the runner wrote rebuilds the same tables and curves when the MLflow store is gone
     tracking.use_tracking_uri(f"sqlite:///{tmp_path / 'empty.db'}")
     try:
