@@ -34,7 +34,7 @@ from gns_bench.evaluate.evaluate import evaluate
 from gns_bench.evaluate.rollout import static_particles
 from gns_bench.model.neighbours import radius_graph, rollout_neighbours
 from gns_bench.model.simulator import LearnedSimulator
-from gns_bench.train.checkpoints import build_simulator, load_simulator
+from gns_bench.train.checkpoints import build_simulator, load_checkpoint, load_simulator
 
 SELECTIONS = (("all four", ["one_step", "rollout", "distribution", "diagnostics"]), ("rollout", ["rollout"]),
               ("one-step", ["one_step"]))
@@ -45,7 +45,7 @@ EVAL = EvalConfig(max_trajectories=1, one_step_windows=50, distribution_steps=10
 def _model(dataset: Path, checkpoint: Path | None) -> tuple[LearnedSimulator, str]:
     if checkpoint is not None:
         simulator, _, _ = load_simulator(checkpoint)
-        return simulator, f"trained ({checkpoint.name} of {checkpoint.parent.name})"
+        return simulator, f"trained {load_checkpoint(checkpoint)['step']:,} steps"
     torch.manual_seed(0)
     return build_simulator(Config(), read_metadata(dataset)).eval(), "untrained"
 
