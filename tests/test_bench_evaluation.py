@@ -20,7 +20,7 @@ def test_the_evaluation_bench_compares_like_with_like(tiny_dataset: Path, tmp_pa
     assert math.isnan(rows["one-step"]["rollout_mse"]) and math.isnan(rows["rollout"]["one_step_mse"])
     assert rows["one-step"]["one_step_mse"] == rows["all four"]["one_step_mse"]
     (skin,) = results["skins"]
-    assert skin["same_edges"] and skin["frames"] > 1 and 0 < skin["search_share"]
+    assert skin["same_edges"] and skin["checked_skin_radii"] > 0 and skin["frames"] > 1 and 0 < skin["search_share"]
     assert skin["probe"].startswith("skin ") and "probed on true frames" in skin["probe"]
     index = "\n".join(_extra_checks(out))  # the machine's lines in the bench index
     assert "one-step 0." in index and "same edges" in index, index

@@ -7,7 +7,8 @@ compared between the selections (it must not change).
 
 Verlet lists: the probe's timings and choice on that trajectory (`autotune.choose_neighbour_skin`), then the
 neighbour finding a rollout does over every true frame of it, with the chosen skin and with none, every
-frame's edges compared (the same edges in the same order, or the row says not), beside the seconds of one
+frame's edges from Verlet lists (the chosen skin, or the widest candidate where none was chosen) compared with a
+fresh search's (the same edges in the same order, or the row says not), beside the seconds of one
 rollout step, so the share the search has of a step shows what the choice can buy.
 
 The model: a checkpoint's (`--checkpoint`, one trained on the dataset), else the paper's model untrained (its
@@ -30,9 +31,7 @@ from gns_bench import autotune
 from gns_bench.bench.measure import allocated_machine, timed
 from gns_bench.config import Config, EvalConfig
 from gns_bench.data.format import Trajectory, load_split, read_metadata
-from gns_bench.evaluate.evaluate import evaluate
-from gns_bench.evaluate.rollout import static_particles
-from gns_bench.model.neighbours import radius_graph, rollout_neighbours
+from gns_bench.evaluate.evaluate import evaluate, neighbour_finders
 from gns_bench.model.simulator import LearnedSimulator
 from gns_bench.train.checkpoints import build_simulator, load_checkpoint, load_simulator
 
@@ -66,16 +65,8 @@ def selection_rows(name: str, simulator: LearnedSimulator, trajectory: Trajector
 @torch.no_grad()
 def skin_row(name: str, simulator: LearnedSimulator, trajectory: Trajectory, model: str,
              repeats: int) -> dict[str, Any]:
-    w = simulator.input_sequence_length
-    truth = torch.from_numpy(trajectory.position[w - 1:])
-    static = static_particles(torch.from_numpy(trajectory.position), torch.from_numpy(trajectory.particle_type))
-    radius, backend, self_edges = simulator.radius, simulator.neighbour_backend, simulator.self_edges
-
-    def finder(skin: float):
-        found = rollout_neighbours(radius, backend, self_edges, skin, truth[0], static)
-        return found if found is not None else (
-            lambda position: radius_graph(position, radius, backend=backend, self_edges=self_edges))
-
+    finder, truth = neighbour_finders(simulator, trajectory)
+    radius = simulator.radius
     started = time.perf_counter()
     choice = autotune.choose_neighbour_skin(finder, truth, radius)
     probe_seconds = time.perf_counter() - started
@@ -84,17 +75,19 @@ def skin_row(name: str, simulator: LearnedSimulator, trajectory: Trajectory, mod
         find = finder(skin)
         return [find(position) for position in truth]
 
-    fresh_edges, chosen_edges = walk(0.0), walk(choice.skin)
-    same = all(torch.equal(a, b) for a, b in zip(fresh_edges, chosen_edges, strict=True))
+    # exactness: the widest candidate skin's lists (or the chosen one) against a fresh search, every frame
+    checked = choice.skin or max(autotune.NEIGHBOUR_SKINS) * radius
+    same = all(torch.equal(a, b) for a, b in zip(walk(0.0), walk(checked), strict=True))
     fresh = timed(lambda: walk(0.0), repeats, warmup=0) / len(truth)
     chosen = timed(lambda: walk(choice.skin), repeats, warmup=0) / len(truth)
+    w = simulator.input_sequence_length
     window = torch.from_numpy(trajectory.position[:w]).transpose(0, 1).contiguous()
     types = torch.from_numpy(trajectory.particle_type)
     step = timed(lambda: simulator.predict_next_position(window, types), repeats)
     return {"dataset": name, "model": model, "particles": trajectory.num_particles, "frames": len(truth),
             "chosen_skin_radii": choice.skin / radius, "probe": choice.describe(), "probe_seconds": probe_seconds,
             "search_fresh_s": fresh, "search_chosen_s": chosen, "speedup": fresh / chosen, "rollout_step_s": step,
-            "search_share": fresh / step, "same_edges": same}
+            "search_share": fresh / step, "checked_skin_radii": checked / radius, "same_edges": same}
 
 
 def measure(datasets: tuple[Path, ...], checkpoints: dict[str, Path], repeats: int = 3
@@ -124,13 +117,14 @@ def markdown(selections: list[dict[str, Any]], skins: list[dict[str, Any]], hard
                   f"(`eval.neighbour_skin = \"auto\"`) and with none, median of repeats, beside one rollout step "
                   f"(fp32); {hardware}.", "",
               "| dataset | particles | frames | probe's choice | probe, s | search a step, ms (none) | "
-              "search a step, ms (chosen) | speed-up | rollout step, ms | search's share of a step | same edges |",
+              "search a step, ms (chosen) | speed-up | rollout step, ms | search's share of a step | same edges, "
+              "Verlet lists at |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in skins:
         lines.append(f"| {r['dataset']} | {r['particles']} | {r['frames']} | {r['probe']} | "
                      f"{r['probe_seconds']:.2f} | {1e3 * r['search_fresh_s']:.2f} | {1e3 * r['search_chosen_s']:.2f} | "
                      f"{r['speedup']:.2f}x | {1e3 * r['rollout_step_s']:.1f} | {r['search_share']:.1%} | "
-                     f"{'yes' if r['same_edges'] else 'NO'} |")
+                     f"{'yes' if r['same_edges'] else 'NO'}, {r['checked_skin_radii']:g} R |")
     return "\n".join(lines) + "\n"
 
 

@@ -4,7 +4,7 @@ distributional metrics (MMD, optimal transport; paper App. B.4) and kinetic-ener
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -331,19 +331,27 @@ def neighbour_skin(simulator: LearnedSimulator, trajectories: list[Trajectory], 
         return 0.0, "none (nothing to probe: no edges, an inflow scene, or no trajectory)"
     from gns_bench import autotune
 
+    finder, truth = neighbour_finders(simulator, first, device, dtype_of(config.precision))
+    choice = autotune.choose_neighbour_skin(finder, truth, simulator.radius)
+    return choice.skin, choice.describe()
+
+
+def neighbour_finders(simulator: LearnedSimulator, trajectory: Trajectory, device: torch.device | str = "cpu",
+                      dtype: torch.dtype = torch.float32) -> tuple[Callable[[float], Callable], torch.Tensor]:
+    """(make_finder, the true frames from the last input frame on): `make_finder(skin)` is what a rollout of
+    `trajectory` would search its edges with at that skin (positions [N, D] -> edges [2, E])."""
     w = simulator.input_sequence_length
-    truth = torch.from_numpy(first.position[w - 1:]).to(device, dtype_of(config.precision))
-    types = torch.from_numpy(first.particle_type).to(device)
-    static = static_particles(torch.from_numpy(first.position).to(device), types)
+    truth = torch.from_numpy(trajectory.position[w - 1:]).to(device, dtype)
+    static = static_particles(torch.from_numpy(trajectory.position).to(device),
+                              torch.from_numpy(trajectory.particle_type).to(device))
     backend, radius, self_edges = simulator.neighbour_backend, simulator.radius, simulator.self_edges
 
-    def finder(skin: float):
+    def finder(skin: float) -> Callable[[torch.Tensor], torch.Tensor]:
         found = rollout_neighbours(radius, backend, self_edges, skin, truth[0], static)
         return found if found is not None else (
             lambda position: radius_graph(position, radius, backend=backend, self_edges=self_edges))
 
-    choice = autotune.choose_neighbour_skin(finder, truth, radius)
-    return choice.skin, choice.describe()
+    return finder, truth
 
 
 def rollout_model(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
