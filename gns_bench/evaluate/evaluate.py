@@ -230,7 +230,7 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
         trajectories = trajectories[: config.max_trajectories]
     wanted = set(config.metrics)
     if "rollout" not in wanted:  # one-step errors only: nothing to roll out
-        return _one_step_only(simulator, trajectories, config, device, progress, gravity)
+        return _one_step_only(simulator, trajectories, config, device, progress)
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
     rolled_out_by, compile_choice = rollout_model(simulator, trajectories, config, device)
     skin, skin_choice = neighbour_skin(simulator, trajectories, config, device)
@@ -312,7 +312,7 @@ def summarise(per_trajectory: list[dict[str, float]]) -> dict[str, float]:
 
 
 def _one_step_only(simulator: LearnedSimulator, trajectories: list[Trajectory], config: EvalConfig,
-                   device: torch.device | str, progress: bool, gravity: list[float] | None) -> Evaluation:
+                   device: torch.device | str, progress: bool) -> Evaluation:
     """`eval.metrics = ["one_step"]`: the one-step MSEs of each trajectory, and no rollout."""
     rows = [{"trajectory": index, **one_step_mse(simulator, traj, config.one_step_windows, device)._asdict()}
             for index, traj in enumerate(tqdm(trajectories, desc="evaluate (one-step)", unit="traj",

@@ -147,8 +147,7 @@ def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | No
     for index, (name, group) in enumerate(groups.items()):
         for seed_index, row in enumerate(group):
             for ax, (metric, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
-                points = [(step, value) for step, value in (row.record.curves.get(f"curve/{metric}", [])
-                                                            if row.record else []) if math.isfinite(value)]
+                points = step_points(row, metric)
                 if not points:
                     continue
                 drawn = True
@@ -212,7 +211,7 @@ def _prediction(fit: PowerLaw | None, paper: float | None, per_step: float | Non
         return law, f"reached: {fmt(last[1])} at step {last[0]:,.0f}"
     steps = fit.steps_to_reach(paper)
     if steps is None:
-        return law, "no falling trend to extrapolate (the exponent's interval reaches 0)"
+        return law, "no falling trend to extrapolate (the exponent, or its interval, reaches 0)"
     hours = f", {steps * per_step / 3600:,.0f} h at its {per_step:.2f} s/step" if per_step else ""
     return law, f"{steps:,.3g} steps{hours}"
 
