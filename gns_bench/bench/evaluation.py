@@ -28,7 +28,7 @@ from typing import Any
 import torch
 
 from gns_bench import autotune
-from gns_bench.bench.measure import allocated_machine, timed
+from gns_bench.bench.measure import allocated_machine, bench_parser, timed
 from gns_bench.config import Config, EvalConfig
 from gns_bench.data.format import Trajectory, load_split, read_metadata
 from gns_bench.evaluate.evaluate import evaluate, neighbour_finders
@@ -129,15 +129,10 @@ def markdown(selections: list[dict[str, Any]], skins: list[dict[str, Any]], hard
 
 
 def main(argv: list[str] | None = None) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = bench_parser(__doc__, 3)
     parser.add_argument("--dataset", type=Path, nargs="+", required=True)
     parser.add_argument("--checkpoint", type=Path, nargs="*", default=[],
                         help="a checkpoint trained on each dataset, in the same order (none: untrained models)")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     args = parser.parse_args(argv)
     if args.checkpoint and len(args.checkpoint) != len(args.dataset):
         parser.error(f"--checkpoint: one for each of the {len(args.dataset)} datasets, got {len(args.checkpoint)}")

@@ -7,10 +7,12 @@ on a shared machine.
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -200,6 +202,17 @@ def synthetic_train_step(simulator: LearnedSimulator, optimiser: torch.optim.Opt
 def build_model(config: ModelConfig, scene: Scene, device: torch.device, seed: int = 0) -> LearnedSimulator:
     torch.manual_seed(seed)
     return build_simulator(Config(model=config), scene.metadata).to(device)  # the paper's sigma_v, the scene's R
+
+
+def bench_parser(doc: str, repeats: int) -> argparse.ArgumentParser:
+    """The arguments every stand-alone bench takes (`python -m gns_bench.bench.<name>`): `--out` (its folder),
+    `--repeats`, `--allocator` (train.allocator's setting, applied as training runs apply it); its description is
+    the first paragraph of the bench's docstring `doc`."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--repeats", type=int, default=repeats)
+    parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
+    return parser
 
 
 def allocated_machine(allocator: str) -> str:

@@ -8,12 +8,11 @@ model in fp32 (evaluation's precision) on the synthetic scene at the paper's den
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, allocated_machine, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import Scene, allocated_machine, bench_parser, build_model, synthetic_scene, timed
 from gns_bench.config import ModelConfig
 
 WINDOWS = (1, 2, 4, 8, 16)
@@ -51,12 +50,7 @@ def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
+    parser = bench_parser(__doc__, 3)
     args = parser.parse_args(argv)
     machine = allocated_machine(args.allocator)
     rows = measure(repeats=args.repeats)

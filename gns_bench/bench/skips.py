@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, allocated_machine, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import Scene, allocated_machine, bench_parser, build_model, synthetic_scene, timed
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE
 from gns_bench.model.precision import autocast
@@ -157,14 +157,9 @@ def encodings_markdown(rows: list[dict[str, Any]], hardware: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = bench_parser(__doc__, 7)
     parser.add_argument("--particles", type=int, default=2000)
     parser.add_argument("--dataset", type=Path, nargs="*", default=[])
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     args = parser.parse_args(argv)
     hardware = allocated_machine(args.allocator)
     rows = measure(args.particles, tuple(args.dataset), args.repeats)
