@@ -335,7 +335,21 @@ def _extra_checks(folder: Path) -> list[str]:
         lines.append(f"- One-step forward with windows batched: {costs} ([one_step.md]({folder.name}/one_step.md)).")
     if (folder / "evaluation.json").is_file():
         lines += _evaluation_lines(json.loads((folder / "evaluation.json").read_text()), folder.name)
+    if (folder / "profile.json").is_file():
+        lines.append(_profile_line(json.loads((folder / "profile.json").read_text()), folder.name))
     return [*lines, ""] if lines else []
+
+
+def _profile_line(results: list[dict[str, Any]], folder: str) -> str:
+    """The index line of the training-step profile (`bench/profile.py`): each precision's heaviest operators and
+    the oneDNN kernels it ran."""
+    parts = []
+    for result in results:
+        ops, dnn = result["operators"], result["kernels"]
+        top = ", ".join(f"`{r['operator']}` {r['share']:.0%}" for r in ops["operators"][:3])
+        isa = ", ".join(sorted({f"`{r['implementation']}`" for r in dnn["kernels"]})) or "none"
+        parts.append(f"{ops['precision']} {top} (oneDNN: {isa})")
+    return f"- Training step profile: {'; '.join(parts)} ([profile.md]({folder}/profile.md))."
 
 
 def _evaluation_lines(results: dict[str, Any], folder: str) -> list[str]:
