@@ -19,7 +19,6 @@ rollouts wander, so monitors only flag them here: a rollout runs whole either wa
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -28,7 +27,7 @@ from typing import Any
 import torch
 
 from gns_bench import autotune
-from gns_bench.bench.measure import allocated_machine, bench_parser, timed
+from gns_bench.bench.measure import allocated_machine, bench_parser, timed, write_results
 from gns_bench.config import Config, EvalConfig
 from gns_bench.data.format import Trajectory, load_split, read_metadata
 from gns_bench.evaluate.evaluate import evaluate, neighbour_finders
@@ -140,10 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     checkpoints = {d.name: c for d, c in zip(args.dataset, args.checkpoint, strict=False)}
     selections, skins = measure(tuple(args.dataset), checkpoints, args.repeats)
     text = markdown(selections, skins, hardware)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "evaluation.md").write_text(text)
-    (args.out / "evaluation.json").write_text(json.dumps({"selections": selections, "skins": skins}, indent=1) + "\n")
-    print(text)
+    write_results(args.out, "evaluation", text, {"selections": selections, "skins": skins})
 
 
 if __name__ == "__main__":

@@ -8,11 +8,13 @@ on a shared machine.
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -213,6 +215,16 @@ def bench_parser(doc: str, repeats: int) -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=repeats)
     parser.add_argument("--allocator", default="auto", help="train.allocator's setting, as training runs apply it")
     return parser
+
+
+def write_results(out: Path, name: str, text: str, rows: Any, **more: Any) -> None:
+    """A stand-alone bench's output: `<out>/<name>.md` (its tables), `<out>/<name>.json` (its rows) and a JSON
+    file for each of `more` (`static_encodings=rows`: `static_encodings.json`); the tables printed too."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.md").write_text(text)
+    for file, data in {name: rows, **more}.items():
+        (out / f"{file}.json").write_text(json.dumps(data, indent=1) + "\n")
+    print(text)
 
 
 def allocated_machine(allocator: str) -> str:

@@ -7,12 +7,19 @@ model in fp32 (evaluation's precision) on the synthetic scene at the paper's den
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, allocated_machine, bench_parser, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import (
+    Scene,
+    allocated_machine,
+    bench_parser,
+    build_model,
+    synthetic_scene,
+    timed,
+    write_results,
+)
 from gns_bench.config import ModelConfig
 
 WINDOWS = (1, 2, 4, 8, 16)
@@ -55,10 +62,7 @@ def main(argv: list[str] | None = None) -> None:
     machine = allocated_machine(args.allocator)
     rows = measure(repeats=args.repeats)
     text = markdown(rows, machine)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "one_step.md").write_text(text)
-    (args.out / "one_step.json").write_text(json.dumps(rows, indent=1) + "\n")
-    print(text)
+    write_results(args.out, "one_step", text, rows)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ frames at about 28 neighbours within R), in each precision asked for:
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -25,7 +24,14 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import allocated_machine, bench_parser, build_model, synthetic_scene
+from gns_bench.bench.measure import (
+    allocated_machine,
+    bench_parser,
+    build_model,
+    synthetic_scene,
+    synthetic_train_step,
+    write_results,
+)
 from gns_bench.config import ModelConfig
 from gns_bench.train.loop import adam
 
@@ -34,9 +40,7 @@ TOP = 15  # operators and kernels listed
 
 
 def _step(precision: str, particles: int, neighbours: float):
-    """A ready training step (a closure) on the scene, and the model."""
-    from gns_bench.bench.measure import synthetic_train_step
-
+    """A ready training step (a closure) on the scene, and the graph's edge count."""
     scene = synthetic_scene(particles, 2, neighbours=neighbours)
     model = build_model(ModelConfig(), scene, torch.device("cpu"))
     window, types = scene.window, scene.particle_type
@@ -140,10 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     results = [{"operators": operators(p, args.repeats), "kernels": kernels(p, args.repeats, allocator=args.allocator)}
                for p in args.precision]
     text = markdown(results, hardware)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "profile.md").write_text(text)
-    (args.out / "profile.json").write_text(json.dumps(results, indent=1) + "\n")
-    print(text)
+    write_results(args.out, "profile", text, results)
 
 
 if __name__ == "__main__":

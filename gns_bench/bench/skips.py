@@ -22,13 +22,20 @@ acceleration (normalised units) between the two.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, allocated_machine, bench_parser, build_model, synthetic_scene, timed
+from gns_bench.bench.measure import (
+    Scene,
+    allocated_machine,
+    bench_parser,
+    build_model,
+    synthetic_scene,
+    timed,
+    write_results,
+)
 from gns_bench.config import ModelConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE
 from gns_bench.model.precision import autocast
@@ -165,11 +172,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = measure(args.particles, tuple(args.dataset), args.repeats)
     reused = measure_encodings(args.particles, args.repeats)
     text = markdown(rows, hardware) + "\n" + encodings_markdown(reused, hardware)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "skips.md").write_text(text)
-    (args.out / "skips.json").write_text(json.dumps(rows, indent=1) + "\n")
-    (args.out / "static_encodings.json").write_text(json.dumps(reused, indent=1) + "\n")
-    print(text)
+    write_results(args.out, "skips", text, rows, static_encodings=reused)
 
 
 if __name__ == "__main__":
