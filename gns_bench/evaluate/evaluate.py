@@ -192,19 +192,29 @@ def rollout_errors(result: RolloutResult, num_frames: int) -> dict[str, float]:
     - `baseline_cv_rollout_mse`: constant-velocity extrapolation scored the same way (kinematic particles on
       their true paths too), and `baseline_cv_same_steps_mse` over the steps the GNS rollout covered, the
       like-for-like baseline when a monitor stopped it;
-    - `rollout_mse_moving`: moving particles only, over every predicted step (gns-bench before it followed the release).
+    - `rollout_mse_moving`: moving particles only, over every predicted step (gns-bench before it followed the release);
+    - `rollout_mse_held` and `mse_h<h>_held`: the rollout MSE over the same steps as `baseline_cv_rollout_mse`
+      and the MSE at each fixed horizon, with a stopped rollout counted rather than cut short: its moving
+      particles held where the stop left them for the steps it did not run (`metrics.held_rollout`). Equal to
+      `rollout_mse` and `mse_h<h>` for a rollout that ran to the end.
     NaN where the rollout predicted nothing."""
     k, truth, nan = result.predicted.shape[0], result.ground_truth, float("nan")
     window = result.initial_window.shape[0]
     paper_steps = min(truth.shape[0], num_frames - window - 1)
     kp = min(k, paper_steps)
+    scored = result.scored_mask(truth.shape[0])
     constant_velocity = _paper_view(metrics.constant_velocity_rollout(result.initial_window, truth.shape[0]),
-                                    truth, result.scored_mask(truth.shape[0]))
+                                    truth, scored)
+    held = metrics.held_rollout(result.predicted, result.initial_window, truth.shape[0])
+    held[k:] = _paper_view(held[k:], truth[k:], scored[k:] if scored.ndim > 1 else scored)  # kinematic: on truth
+    horizons = metrics.mse_at_horizons(held, truth, scored)
     return {
         "rollout_mse": metrics.rollout_mse(result.predicted[:kp], truth[:kp]) if kp else nan,
         "baseline_cv_rollout_mse": metrics.rollout_mse(constant_velocity[:paper_steps], truth[:paper_steps]),
         "baseline_cv_same_steps_mse": metrics.rollout_mse(constant_velocity[:kp], truth[:kp]) if kp else nan,
         "rollout_mse_moving": metrics.rollout_mse(result.predicted, truth[:k], result.scored_mask(k)) if k else nan,
+        "rollout_mse_held": metrics.rollout_mse(held[:paper_steps], truth[:paper_steps]),
+        **{f"mse_h{h}_held": value for h, value in horizons.items()},
     }
 
 

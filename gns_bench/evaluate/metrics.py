@@ -46,6 +46,17 @@ def mse_at_horizons(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray |
     return {h: position_mse(predicted[:h], truth[:h], upto(h)) for h in horizons if h <= predicted.shape[0]}
 
 
+def held_rollout(predicted: np.ndarray, initial_window: np.ndarray, num_steps: int) -> np.ndarray:
+    """A rollout a monitor stopped, carried to `num_steps` frames by holding its last predicted positions (the
+    window's last frame when it predicted none): a stopped rollout is scored over the whole horizon, its
+    particles frozen where the model lost them, instead of over the steps it covered. predicted [K, N, D],
+    initial_window [W, N, D] -> [num_steps, N, D]; the first min(K, num_steps) frames are `predicted`'s."""
+    k = min(predicted.shape[0], num_steps)
+    last = predicted[k - 1] if k else initial_window[-1]
+    held = np.broadcast_to(last, (num_steps - k, *last.shape))
+    return np.concatenate([predicted[:k], held.astype(predicted.dtype)])
+
+
 def constant_velocity_rollout(initial_window: np.ndarray, num_steps: int) -> np.ndarray:
     """Baseline: every particle keeps its last velocity. initial_window [W, N, D] -> [K, N, D]."""
     last, velocity = initial_window[-1], initial_window[-1] - initial_window[-2]

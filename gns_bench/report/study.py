@@ -34,8 +34,13 @@ from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 # What the error-against-time figure draws: the rollout MSE over constant velocity's on the same steps (like for
 # like however early a monitor stopped a rollout; an untrained model's rollouts stop at once, so its raw rollout
 # MSE covers a few steps and reads low), the MSE over the first 10 steps, and the one-step MSE.
+# Runs that log the held rollout (`evaluate.rollout_errors`) get a panel of it too: stopped rollouts counted over
+# the whole horizon, against constant velocity's over the same whole horizon.
 CURVE_PANELS = (("against_cv", "rollout MSE / constant velocity's, same steps (first {steps})"),
+                ("held_against_cv", "whole rollout, stops held / constant velocity's (first {steps})"),
                 ("mse_h10", "MSE over the first 10 steps (box units²)"), ("one_step_mse", "one-step MSE (box units²)"))
+RATIOS = {"against_cv": ("rollout_mse", "baseline_cv_same_steps_mse"),
+          "held_against_cv": ("rollout_mse_held", "baseline_cv_rollout_mse")}
 # The physical diagnostics along training (gns_bench/evaluate/diagnostics.py), against steps: 1 is the truth's.
 DIAGNOSTIC_PANELS = (("gravity_ratio", "gravity ratio, one step on true windows"),
                      ("rollout_gravity_ratio", "gravity ratio along the rollout"),
@@ -49,9 +54,10 @@ def curve(row: RunRow, metric: str) -> list[tuple[float, float]]:
     if row.record is None:
         return []
     seconds = dict(row.record.curves.get("curve/train_seconds", []))
-    if metric == "against_cv":
-        baseline = dict(row.record.curves.get("curve/baseline_cv_same_steps_mse", []))
-        values = [(step, value / baseline[step]) for step, value in row.record.curves.get("curve/rollout_mse", [])
+    if metric in RATIOS:
+        numerator, denominator = RATIOS[metric]
+        baseline = dict(row.record.curves.get(f"curve/{denominator}", []))
+        values = [(step, value / baseline[step]) for step, value in row.record.curves.get(f"curve/{numerator}", [])
                   if baseline.get(step, 0) > 0]
     else:
         values = row.record.curves.get(f"curve/{metric}", [])
@@ -88,7 +94,8 @@ def winner(groups: dict[str, list[RunRow]]) -> tuple[str, str]:
 
 def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
     header = ("| candidate | seeds | steps | training time (s) | s/step | one-step MSE | rollout MSE | vs constant "
-              "velocity, same steps | MSE at 10 / 100 steps | rollout steps covered | hardware | MLflow runs |")
+              "velocity, same steps | whole rollout, stops held, vs constant velocity | MSE at 10 / 100 steps | "
+              "rollout steps covered | hardware | MLflow runs |")
     lines = [header, "|" + "---|" * header.count(" | ") + "---|"]
     for name, group in groups.items():
         done = [r for r in group if r.ok]
@@ -96,12 +103,15 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
         def mean(metric: str, done: list[RunRow] = done) -> float:
             return mean_std([r.metric(metric) for r in done])[0]
         rollout, rollout_std, seeds = mean_std([r.metric("rollout_mse") for r in done])
-        cv = mean("baseline_cv_same_steps_mse")
+        cv, held = mean("baseline_cv_same_steps_mse"), mean("rollout_mse_held")
+        cv_whole = mean("baseline_cv_rollout_mse")
         steps, seconds = mean("train/final_step"), mean("train/wall_time_s")
         cells = [f"`{name}`", str(seeds) if done else MISSING, fmt(steps), fmt(seconds) + shared_cores_mark(done),
                  fmt(seconds / steps) if steps else "—", fmt(mean("one_step_mse")),
                  mean_cell(rollout, rollout_std, seeds) if seeds else fmt(rollout),
                  f"{rollout / cv:.2g}x ({fmt(rollout)} / {fmt(cv)})" if cv > 0 else "—",
+                 f"{held / cv_whole:.2g}x ({fmt(held)} / {fmt(cv_whole)})" if math.isfinite(held) and cv_whole > 0
+                 else "—",
                  f"{fmt(mean('mse_h10'))} / {fmt(mean('mse_h100'))}",
                  steps_covered(done) if done else "—",
                  machines(done) or "—", run_ids_cell(group)]
@@ -110,13 +120,19 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
 
 
 def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: int) -> Path | None:
-    """Error against training time, one line per run (colour per candidate), one panel per metric."""
-    fig, axes = plt.subplots(1, len(CURVE_PANELS), figsize=(4.2 * len(CURVE_PANELS), 3.2))
+    """Error against training time, one line per run (colour per candidate), one panel per metric some run
+    logged."""
+    panels = [(metric, label) for metric, label in CURVE_PANELS
+              if any(curve(row, metric) for group in groups.values() for row in group)]
+    if not panels:
+        return None
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
+    axes = axes[0]
     drawn = False
     colours = plt.get_cmap("tab10")
     for index, (name, group) in enumerate(groups.items()):
         for seed_index, row in enumerate(group):
-            for ax, (metric, _) in zip(axes, CURVE_PANELS, strict=True):
+            for ax, (metric, _) in zip(axes, panels, strict=True):
                 points = curve(row, metric)
                 if not points:
                     continue
@@ -127,7 +143,7 @@ def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: in
     if not drawn:
         plt.close(fig)
         return None
-    for ax, (_, label) in zip(axes, CURVE_PANELS, strict=True):
+    for ax, (_, label) in zip(axes, panels, strict=True):
         ax.set_title(label.format(steps=rollout_steps), fontsize=9)
         ax.set_xlabel("training time (min)")
         ax.set_yscale("log")
@@ -218,8 +234,10 @@ def _prediction(fit: PowerLaw | None, paper: float | None, per_step: float | Non
 
 # What the trend section fits: the paper's one-step MSE (Table 1 gives its figure) and the MSE over the first 10
 # rollout steps, which every rollout reaches (on the cpu-tier data the one-step MSE flattens early while this
-# one still falls: reports/study-gravity_curve).
-TREND_METRICS = (("one_step_mse", "one-step MSE"), ("mse_h10", "MSE over rollout steps 1-10"))
+# one still falls: reports/study-gravity_curve), and, where a run logged it, the whole-rollout MSE with stopped
+# rollouts held (`evaluate.rollout_errors`), the like-for-like of Table 1's rollout MSE.
+TREND_METRICS = (("one_step_mse", "one-step MSE"), ("mse_h10", "MSE over rollout steps 1-10"),
+                 ("rollout_mse_held", "whole-rollout MSE, stops held"))
 
 
 def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -> list[str]:
@@ -230,14 +248,17 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
     if not rows:
         return []
     reference = domain_reference(domain)
-    paper = {"one_step_mse": reference.one_step_mse if reference else None}
+    paper = {"one_step_mse": reference.one_step_mse if reference else None,
+             "rollout_mse_held": reference.rollout_mse if reference else None}
     header = ("| run | metric | evaluated to step | value there | exponent of steps (95% interval), fitted | steps "
               "to the paper's figure, predicted | hardware |")
     lines = ["## Where the curves go", "",
              f"Each error against training steps (on the validation trajectories the curve evaluates), with a power "
              f"law fitted by least squares in log-log from half the last evaluated step on (the early transient left "
              f"out); the one-step MSE's law extrapolated to the paper's one-step MSE for "
-             f"{reference.name if reference else domain} ({fmt(paper['one_step_mse'])}, Table 1). The paper's "
+             f"{reference.name if reference else domain} ({fmt(paper['one_step_mse'])}, Table 1), and the "
+             f"whole-rollout MSE's (a stopped rollout's particles held where the stop left them, to the end) to "
+             f"its rollout MSE ({fmt(paper['rollout_mse_held'])}). The paper's "
              f"figure was measured on its own data: our solver's scenes are not its scenes, so the prediction says "
              f"where this curve's trend reaches that scale, not that it would reproduce the paper; an "
              f"extrapolation over a decade or more is a guess with the interval shown.", "",
@@ -255,20 +276,22 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
     gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout |", "|---|---|---|"]
     gravity += [f"| {row.planned.name} | {_settled(row, 'gravity_ratio')} | {_settled(row, 'rollout_gravity_ratio')} |"
                 for row in rows]
-    figure = trend_figure(rows, fits, paper["one_step_mse"], out_dir / "trend.png")
+    figure = trend_figure(rows, fits, paper, out_dir / "trend.png")
     return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
             f"When the blocks fall at g: the first evaluated step from which each gravity ratio stays within "
             f"{GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings (its range over the "
             f"second half of the curve).", "", *gravity, ""]
 
 
-def trend_figure(rows: list[RunRow], fits: dict[tuple[str, str], PowerLaw | None], paper: float | None,
-                 path: Path) -> Path:
-    """Each `TREND_METRICS` error against steps and against training hours, log-log (a row of panels each),
-    each run's fit dashed and the paper's one-step figure dotted."""
-    fig, axes = plt.subplots(len(TREND_METRICS), 2, figsize=(9, 3.2 * len(TREND_METRICS)), squeeze=False)
+def trend_figure(rows: list[RunRow], fits: dict[tuple[str, str], PowerLaw | None],
+                 paper: dict[str, float | None], path: Path) -> Path:
+    """Each `TREND_METRICS` error some run logged against steps and against training hours, log-log (a row of
+    panels each), each run's fit dashed and the paper's figure (`paper`, by metric) dotted."""
+    shown = [(metric, label) for metric, label in TREND_METRICS if any(step_points(row, metric) for row in rows)]
+    fig, axes = plt.subplots(len(shown), 2, figsize=(9, 3.2 * len(shown)), squeeze=False)
     colours = plt.get_cmap("tab10")
-    for (metric, label), (by_steps, by_time) in zip(TREND_METRICS, axes, strict=True):
+    for (metric, label), (by_steps, by_time) in zip(shown, axes, strict=True):
+        line_at = paper.get(metric)
         for index, row in enumerate(rows):
             points = [(step, value) for step, value in step_points(row, metric) if step > 0]  # log axes
             if not points:
@@ -281,14 +304,14 @@ def trend_figure(rows: list[RunRow], fits: dict[tuple[str, str], PowerLaw | None
                 by_time.plot(*zip(*timed, strict=True), marker="o", ms=3, lw=1, color=colour)
             fit, per_step = fits.get((row.planned.name, metric)), seconds_per_step(row)
             if fit is not None:
-                reach = fit.steps_to_reach(paper) if paper and metric == "one_step_mse" else None
+                reach = fit.steps_to_reach(line_at) if line_at else None
                 line = np.geomspace(fit.first_step, min(reach, 100 * fit.last_step) if reach else 3 * fit.last_step)
                 by_steps.plot(line, fit.value_at(line), color=colour, ls="--", lw=0.8)
                 if per_step:
                     by_time.plot(line * per_step / 3600, fit.value_at(line), color=colour, ls="--", lw=0.8)
         for ax, x_label in ((by_steps, "training steps"), (by_time, "training time (h)")):
-            if paper and metric == "one_step_mse":
-                ax.axhline(paper, color="black", ls=":", lw=1, label="paper (Table 1)" if ax is by_steps else None)
+            if line_at:
+                ax.axhline(line_at, color="black", ls=":", lw=1, label="paper (Table 1)" if ax is by_steps else None)
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: minor labels overlap

@@ -187,6 +187,15 @@ def test_tripped_monitor_is_logged_to_mlflow(tiny_dataset: Path, tmp_path: Path)
     assert evaluation.metrics["baseline_cv_same_steps_mse"] == pytest.approx(
         metrics.rollout_mse(on_paths[:3], result.ground_truth[:3]))
     assert evaluation.metrics["baseline_cv_same_steps_mse"] < evaluation.metrics["baseline_cv_rollout_mse"]
+    # the stopped rollout counted over the whole horizon: its moving particles held at the last covered frame
+    truth, k = result.ground_truth, result.predicted.shape[0]
+    held = np.concatenate([result.predicted, np.repeat(result.predicted[-1:], truth.shape[0] - k, axis=0)])
+    held = np.where(result.moving_mask[None, :, None], held, truth)
+    steps = load_split(tiny_dataset, "test")[0].num_steps - result.initial_window.shape[0] - 1  # the release's
+    assert evaluation.metrics["rollout_mse_held"] == pytest.approx(metrics.rollout_mse(held[:steps], truth[:steps]))
+    assert evaluation.metrics["mse_h20_held"] == pytest.approx(
+        metrics.position_mse(held[:20], truth[:20], result.moving_mask))
+    assert "mse_h20" not in evaluation.metrics  # the cut-short rollout never reached step 20
     with tracking.start_run("monitor-test", "nan") as run:
         _log_evaluation(run, evaluation, tmp_path, meta.bounds, "test")
     logged = MlflowClient(tracking_uri=tracking.tracking_uri()).get_run(run.run_id)

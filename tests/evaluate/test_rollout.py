@@ -61,6 +61,32 @@ def test_constant_velocity_baseline_is_exact_for_uniform_motion() -> None:
     np.testing.assert_allclose(predicted, frames[6:], atol=1e-12)
 
 
+def test_a_held_rollout_scores_a_stop_against_a_moving_truth() -> None:
+    # particles moving at unit speed in x; the model's rollout stopped after 2 of 5 steps
+    truth = np.arange(1, 6, dtype=np.float64)[:, None, None] * np.array([[[1.0, 0.0]]])
+    window = np.zeros((3, 1, 2))
+    held = metrics.held_rollout(truth[:2], window, 5)
+    assert held.shape == (5, 1, 2) and (held[2:, 0, 0] == 2.0).all()  # frozen at the last covered frame
+    assert metrics.rollout_mse(held, truth) == pytest.approx((0 + 0 + 1 + 4 + 9) / 10)  # x errors 1, 2, 3; y 0
+    assert metrics.rollout_mse(metrics.held_rollout(truth, window, 5), truth) == 0.0  # a whole rollout: unchanged
+    assert (metrics.held_rollout(truth[:0], window, 2) == 0.0).all()  # nothing predicted: the window's last frame
+
+
+def test_a_stopped_rollout_holds_its_moving_particles_and_keeps_kinematic_ones_on_their_paths() -> None:
+    from gns_bench.evaluate.evaluate import rollout_errors
+    from gns_bench.evaluate.result import RolloutResult
+
+    # particle 0 moving, particle 1 kinematic (type 3), both at unit speed in x; the rollout stopped after 2 of 4
+    frames = np.arange(1, 9, dtype=np.float64)[:, None, None] * np.array([[[1.0, 0.0], [1.0, 0.0]]])
+    window, truth = frames[:3], frames[3:7]
+    result = RolloutResult(predicted=truth[:2].copy(), ground_truth=truth, initial_window=window,
+                           particle_type=np.array([5, 3]), stopped_at=2, stop_reason="test")
+    errors = rollout_errors(result, num_frames=8)  # the release's 8 - 3 - 1 = 4 steps
+    # the moving particle is 1 and 2 behind over the two held steps, the kinematic one follows the data: (1 + 4) / 16
+    assert errors["rollout_mse_held"] == pytest.approx(5 / 16)
+    assert errors["mse_h1_held"] == 0.0 and errors["rollout_mse"] == 0.0  # the covered steps alone look perfect
+
+
 def test_verlet_rollout_equals_fresh_search(untrained: LearnedSimulator, tiny_dataset: Path,
                                            monkeypatch: pytest.MonkeyPatch) -> None:
     from gns_bench.model import neighbours

@@ -576,6 +576,12 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     assert (tmp_path / "reports" / "study-two" / "smoke" / "error_vs_time.png").stat().st_size > 5000
     where = text[text.index("## Where the curves go"):]  # each run's trend, fitted from its curve
     assert "| candidate=plain-seed0 | one-step MSE | 20 |" in where
+    # a stopped rollout is counted over the whole horizon (held), in the table and the trend
+    assert "| candidate=plain-seed0 | whole-rollout MSE, stops held | 20 |" in where
+    plain_row = next(line for line in text.splitlines() if line.startswith("| `plain` |")).split(" | ")
+    header = next(line for line in text.splitlines() if line.startswith("| candidate |")).split(" | ")
+    held = plain_row[header.index("whole rollout, stops held, vs constant velocity")]
+    assert held.endswith(")") and "x (" in held, held
     gravity = where[where.index("| run | gravity ratio within 10% of 1"):].split("\n\n")[0].splitlines()[2:]
     assert sorted(line.split(" | ")[0] for line in gravity) == ["| candidate=more-data-seed0",
                                                                  "| candidate=plain-seed0"]
