@@ -70,10 +70,11 @@ def _report_partway(path: Path, tier: str, reports_root: Path, echo: Callable[[s
 def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path,
                  reports_root: Path = Path("reports"), launcher: str = "local", cluster: str | None = None,
                  progress: bool = True, echo: Callable[[str], None] = print,
-                 sweeps_dir: Path = SWEEPS_DIR, parallel: int = 1) -> list[SweepResult]:
+                 sweeps_dir: Path = SWEEPS_DIR, parallel: int = 1, any_kind: bool = False) -> list[SweepResult]:
     """Run every sweep of the campaign at `tier` in order, writing each one's report and the overviews when it
     is done, then every report (`write_all_reports`). `parallel`: runs at once
-    within each sweep (`run_sweep`)."""
+    within each sweep (`run_sweep`). Runs held to another kind of machine wait for a session on one
+    (`sweep/cpu_kinds.py`) while the campaign goes on with the rest, unless `any_kind`."""
     results = []
     for index, path in enumerate(campaign.sweeps, 1):
         sweep: SweepSpec = load_sweep(path, sweeps_dir)
@@ -81,7 +82,8 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
         try:
             outcomes = run_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, launcher=launcher,
                                  cluster=cluster, progress=progress, parallel=parallel, reports_root=reports_root,
-                                 echo=echo, after_run=partial(_report_partway, path, tier, reports_root, echo))
+                                 echo=echo, after_run=partial(_report_partway, path, tier, reports_root, echo),
+                                 any_kind=any_kind)
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # noqa: BLE001 - one sweep's failure (a dataset that would not generate) is reported
@@ -92,12 +94,14 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
         summary = summary_path(reports_root, sweep.name, tier)
         held = read_run_summary(summary)
         readme = summary.parent / "README.md"
-        if (all(outcome.status == "SKIPPED" and outcome.name in held for outcome in outcomes) and summary.is_file()
+        if (all(o.status == "WAITING" or (o.status == "SKIPPED" and o.name in held) for o in outcomes)
+                and summary.is_file()
                 and readme.is_file() and readme.stat().st_mtime >= summary.stat().st_mtime):
-            # nothing ran or was recorded, its summary holds every run and its report was written after the
-            # summary last changed: the report and the overviews stand as written, and the final rewrite below
-            # covers them. Rewriting them took about 20 s a sweep (MLflow reads, PNGs): a resumed campaign spent
-            # 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC, CPU family 25, model 17).
+            # nothing ran or was recorded, its summary holds every run not waiting for another kind of machine,
+            # and its report was written after the summary last changed: the report and the overviews stand as
+            # written, and the final rewrite below covers them. Rewriting them took about 20 s a sweep (MLflow
+            # reads, PNGs): a resumed campaign spent 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC,
+            # CPU family 25, model 17).
             echo(f"  reports: unchanged, nothing new in {sweep.name}")
             continue
         for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:

@@ -207,6 +207,10 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                         "'message_passing_steps=5-*'; --dry-run lists the names")
     p.add_argument("--no-train", action="store_true",
                    help="train nothing: only record the runs other sweeps already trained (shared)")
+    p.add_argument("--any-cpu-kind", action="store_true",
+                   help="train here the runs held to another kind of machine (by default an ablation's or a "
+                        "study's runs train on the CPU kind most of them trained on, and a started run resumes on "
+                        "the kind it began on, so that compared runs share one kind: gns_bench/sweep/cpu_kinds.py)")
     p.add_argument("--reevaluate", nargs="?", const="the evaluation changed", default=None, metavar="REASON",
                    help="first evaluate the finished runs again from their final checkpoints, into their own MLflow "
                         "runs (tag 'reevaluated' records REASON), and copy shared runs afresh; then the sweep runs "
@@ -231,20 +235,22 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         return
     if args.dry_run:
         runs, status, _ = prepare(sweep, args.tier, args.data_root, generate=False, share=not args.no_share,
-                                  only=args.only, reports_root=args.reports_root)
+                                  only=args.only, reports_root=args.reports_root, any_kind=args.any_cpu_kind,
+                                  runs_root=args.runs_root)
         print(format_plan(sweep, args.tier, runs, status))
         return
     outcomes = run_sweep(sweep, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                          launcher=args.launcher, cluster=args.cluster, share=not args.no_share, only=args.only,
                          train=not args.no_train, reevaluate_reason=args.reevaluate, parallel=args.parallel,
-                         reports_root=args.reports_root)
+                         reports_root=args.reports_root, any_kind=args.any_cpu_kind)
     counts = {s: sum(o.status == s for o in outcomes)
-              for s in ("FINISHED", "REEVALUATED", "SKIPPED", "SHARED", "FAILED")}
+              for s in ("FINISHED", "REEVALUATED", "SKIPPED", "SHARED", "FAILED", "WAITING")}
     print(f"sweep {sweep.name}: {counts['FINISHED']} finished, "
           + (f"{counts['REEVALUATED']} evaluated again, " if args.reevaluate is not None else "")
           + f"{counts['SKIPPED']} skipped (already finished), "
-          f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed; "
-          f"MLflow experiment '{sweep.experiment}'")
+          f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed"
+          + (f", {counts['WAITING']} waiting for another kind of machine" if counts["WAITING"] else "")
+          + f"; MLflow experiment '{sweep.experiment}'")
     for outcome in outcomes:
         if outcome.status == "FAILED":
             print(f"  FAILED {outcome.name}: {outcome.error}")
@@ -269,6 +275,10 @@ def _add_campaign(sub: argparse._SubParsersAction) -> None:
                    help="local launcher: N runs at once, each in its own process on its own share of the cores "
                         "(on a GPU they share the device); default 1")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"], help="submitit executor")
+    p.add_argument("--any-cpu-kind", action="store_true",
+                   help="train here the runs held to another kind of machine (by default an ablation's or a "
+                        "study's runs train on the CPU kind most of them trained on, and a started run resumes on "
+                        "the kind it began on, so that compared runs share one kind: gns_bench/sweep/cpu_kinds.py)")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or made")
     p.add_argument("--runs-root", type=Path, default=Path("runs"), help="where run directories go")
     p.add_argument("--reports-root", type=Path, default=Path("reports"), help="where reports go")
@@ -284,12 +294,15 @@ def cmd_campaign(args: argparse.Namespace) -> None:
         return
     results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                            reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster,
-                           parallel=args.parallel)
+                           parallel=args.parallel, any_kind=args.any_cpu_kind)
     failed = [(r.sweep, o) for r in results for o in r.outcomes if o.status == "FAILED"]
     broken = [r for r in results if r.error]
     done = sum(o.status in ("FINISHED", "SKIPPED", "SHARED", "REEVALUATED") for r in results for o in r.outcomes)
+    waiting = sum(o.status == "WAITING" for r in results for o in r.outcomes)
     print(f"campaign {campaign.name} ({args.tier}): {len(results)} sweeps, {done} runs done, {len(failed)} failed, "
-          f"{len(broken)} sweeps that could not run")
+          f"{len(broken)} sweeps that could not run"
+          + (f", {waiting} runs waiting for another kind of machine (--any-cpu-kind trains them here)"
+             if waiting else ""))
     for sweep, outcome in failed:
         print(f"  FAILED {sweep}/{outcome.name}: {outcome.error}")
     for result in broken:

@@ -34,6 +34,7 @@ from gns_bench.evaluate.metrics import DEFAULT_HORIZONS
 from gns_bench.report.cells import any_stopped
 from gns_bench.report.collect import RunRow
 from gns_bench.report.intervals import Interval, ratio_interval
+from gns_bench.sweep.cpu_kinds import kind_of
 
 REPRODUCED = "reproduced"
 CONTRADICTED = "contradicted"
@@ -209,7 +210,8 @@ def error_measure(rows: Sequence[RunRow]) -> tuple[str, str]:
 
 
 def cpu_kind(row: RunRow) -> str:
-    return row.tag("cpu") or row.tag("hardware")
+    """The kind of machine a run trained on, as the runner holds compared runs to one (`sweep/cpu_kinds.py`)."""
+    return kind_of(row.record.tags if row.record is not None else {})
 
 
 def judge_axis(axis: str, rows: Sequence[RunRow], reference: Mapping[str, Any]) -> dict[str, Verdict]:

@@ -35,7 +35,9 @@ from gns_bench import tracking
 from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
 from gns_bench.datasets import dataset_complete, dataset_path, ensure_dataset, resolve_for_domain
+from gns_bench.devices import resolve_device
 from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, train_run
+from gns_bench.sweep import cpu_kinds
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 from gns_bench.sweep.summaries import RESTORED_FROM, record_runs, summarised_runs, summary_path
 
@@ -43,7 +45,7 @@ from gns_bench.sweep.summaries import RESTORED_FROM, record_runs, summarised_run
 @dataclass
 class RunOutcome:
     name: str
-    status: str  # FINISHED, SKIPPED, SHARED, REEVALUATED, FAILED
+    status: str  # FINISHED, SKIPPED, SHARED, REEVALUATED, FAILED, WAITING (held to another kind of machine)
     run_id: str = ""
     error: str = ""
     metrics: dict[str, float] | None = None
@@ -286,13 +288,16 @@ SUMMARISED = "finished (committed summary)"  # a run the MLflow store lacks and 
 
 
 def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = True, progress: bool = True,
-            share: bool = True, only: Sequence[str] = (), reports_root: Path | None = None
+            share: bool = True, only: Sequence[str] = (), reports_root: Path | None = None, any_kind: bool = False,
+            runs_root: Path | None = None
             ) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
     """Plan the runs (those matching `only`, if given) and ensure their datasets. Returns the runs, each
     run's status before running (FINISHED, SUMMARISED, "to run", "shared with <sweep>/<run>", "dataset
-    missing"), and the shared ones' (key, trained run) by run name: those another sweep trained with the same
-    key (none when `share` is off). `reports_root`: where the committed run summaries are read (none: MLflow's
-    runs only)."""
+    missing", "waits for a machine of CPU kind ..."), and the shared ones' (key, trained run) by run name:
+    those another sweep trained with the same key (none when `share` is off). `reports_root`: where the
+    committed run summaries are read (none: MLflow's runs only). A run to train waits for another kind of
+    machine where `sweep/cpu_kinds.py` holds it there, unless `any_kind`: any of a sweep whose runs are compared,
+    and one that would resume from a checkpoint under `runs_root` (when given) begun on another kind."""
     runs = select_runs(sweep, sweep.plan(tier), only)
     summarised = summarised_runs(reports_root) if reports_root is not None else []
     saved = {r.name: r for r in summarised if r.tags.get("sweep") == sweep.name and r.tags.get("tier") == tier}
@@ -329,7 +334,40 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             shared[run.name] = (key, source)
         else:
             status[run.name] = "to run"
+    if not any_kind:
+        _hold_to_kinds(sweep, tier, runs, status, saved, data_root, runs_root)
     return runs, status, shared
+
+
+def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str],
+                   saved: dict[str, tracking.RunRecord], data_root: Path, runs_root: Path | None) -> None:
+    """Set the status of each run to train that `sweep/cpu_kinds.py` holds to another kind of machine: one that
+    would resume from a checkpoint begun there, or any of a sweep whose runs are compared with each other, once
+    most of its runs that trained did so on another kind."""
+    to_run = [run for run in runs if status[run.name] == "to run"]
+    if not to_run:
+        return
+    sweep_kind = ""
+    if sweep.kind in cpu_kinds.COMPARED:
+        attempts = tracking.search_sweep_runs(sweep.experiment, tier)  # newest first
+        trained = [r for r in attempts if r.status == "FINISHED" or r.metrics]  # attempts that got to train
+        known = {r.name for r in attempts}
+        trained += [r for r in saved.values() if r.name not in known]  # the committed summaries' runs MLflow lacks
+        sweep_kind = cpu_kinds.held_kind(cpu_kinds.kind_of(r.tags) for r in sorted(trained, key=lambda r: r.start_time))
+    here: dict[str, str] = {}
+    for run in to_run:
+        device = run.config.train.device
+        if device not in here:
+            here[device] = cpu_kinds.kind_here(resolve_device(device))
+        out_dir = run_dir(runs_root, run) if runs_root is not None else None
+        began = ""
+        if out_dir is not None and _resumable(out_dir, dataset_run_key(run, data_root)):
+            attempt = tracking.get_run((out_dir / RUN_ID_FILE).read_text().strip())
+            began = cpu_kinds.kind_of(attempt.tags) if attempt is not None else ""
+        if began and began != here[device]:
+            status[run.name] = cpu_kinds.waiting_status(began, "it began training there")
+        elif sweep_kind and sweep_kind != here[device]:
+            status[run.name] = cpu_kinds.waiting_status(sweep_kind, "its sweep's compared runs trained there")
 
 
 def _datasets_made(datasets: Iterable[tuple[str, str]], seed: int, data_root: Path) -> bool:
@@ -371,7 +409,8 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
               only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
               parallel: int = 1, reports_root: Path | None = None,
               echo: Callable[[str], None] = print,
-              after_run: Callable[[RunOutcome, int], None] | None = None) -> list[RunOutcome]:
+              after_run: Callable[[RunOutcome, int], None] | None = None,
+              any_kind: bool = False) -> list[RunOutcome]:
     """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
     or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
     `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
@@ -380,13 +419,14 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     finishes (trained, shared, stress-tested, evaluated again) is recorded in its sweep's summary as it ends,
     with the finished runs MLflow holds that the summary lacks (none: MLflow only). `after_run(outcome,
     runs_left)`: called as each run the local launcher trains one at a time ends, with how many of this
-    call's runs are still to train."""
+    call's runs are still to train. A run held to another kind of machine (`sweep/cpu_kinds.py`) is not
+    trained here (outcome WAITING, saying which kind), unless `any_kind`."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
     if parallel > 1 and launcher != "local":
         raise ValueError(f"parallel = {parallel} is for the local launcher; {launcher} sets its own parallelism")
     runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only,
-                                   reports_root=reports_root)
+                                   reports_root=reports_root, any_kind=any_kind, runs_root=runs_root)
     again: list[RunOutcome] = []
     if reevaluate_reason is not None:
         finished = [r for r in runs if status[r.name] == FINISHED]  # a summary's run has no checkpoint here
@@ -397,11 +437,17 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     done_again = {o.name for o in again}
     outcomes = again + [RunOutcome(r.name, "SKIPPED") for r in runs
                         if status[r.name] in (FINISHED, SUMMARISED) and r.name not in done_again]
+    waiting = [RunOutcome(r.name, "WAITING", error=status[r.name]) for r in runs
+               if status[r.name].startswith(cpu_kinds.WAITS)]
     selected = f" (--only {' '.join(only)})" if only else ""
     summarised = sum(status[r.name] == SUMMARISED for r in runs)
     echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished"
          + (f" ({summarised} known only from the committed run summary)" if summarised else "")
-         + f", {len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained"))
+         + f", {len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained")
+         + (f", {len(waiting)} waiting for another kind of machine" if waiting else ""))
+    for outcome in waiting:
+        echo(f"  {outcome.name}: {outcome.error}; --any-cpu-kind trains it here")
+    outcomes += waiting
     if not train:
         pending = []
 

@@ -779,3 +779,75 @@ def test_a_store_that_is_gone_leaves_the_committed_summaries_in_charge(
     assert list(status.values()) == ["to run"]  # the summary's run is another run now
     _, status, _ = prepare(changed, "smoke", tmp_path / "no-data", generate=False, reports_root=reports)
     assert list(status.values()) == ["dataset missing"]  # and is not taken for it without data either
+
+
+def test_compared_runs_wait_for_the_kind_of_machine_most_of_them_trained_on(
+        sweeps: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A study's candidates (an ablation's arms alike) are compared with each other, and the verdicts compare
+    runs on one CPU kind only: once they began on one kind, the rest wait for a machine of that kind, the dry run
+    says so, and --any-cpu-kind trains them anyway."""
+    from gns_bench import devices
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (sweeps / "studies").mkdir()
+    path = sweeps / "studies" / "kinds.toml"
+    path.write_text(STUDY.replace('dataset_tier = "small"\n', ""))
+    sweep = load_sweep(path)
+    lines: list[str] = []
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=lines.append)
+    amd, intel = "family 25, model 17, stepping 1", "family 6, model 207, stepping 2"
+    monkeypatch.setattr(devices, "cpu_identity", lambda *args: amd)
+    [first] = run_sweep(sweep, "smoke", only=["candidate=plain-*"], **roots)
+    assert first.status == "FINISHED" and tracking.get_run(first.run_id).tags["cpu"] == amd
+    monkeypatch.setattr(devices, "cpu_identity", lambda *args: intel)  # the next session's machine
+    outcomes = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
+    assert outcomes["candidate=plain-seed0"].status == "SKIPPED"
+    waiting = outcomes["candidate=more-data-seed0"]
+    assert waiting.status == "WAITING" and amd in waiting.error, waiting
+    assert [r.info.run_name for r in runs_of(sweep.experiment)] == ["candidate=plain-seed0"]  # nothing started
+    assert any("--any-cpu-kind trains it here" in line for line in lines)
+    _, status, _ = prepare(sweep, "smoke", tmp_path / "data", generate=False)
+    assert status["candidate=more-data-seed0"] == f"waits for a machine of CPU kind {amd} (its sweep's compared " \
+                                                 "runs trained there)"
+    [ran] = [o for o in run_sweep(sweep, "smoke", any_kind=True, **roots) if o.status != "SKIPPED"]
+    assert ran.status == "FINISHED" and tracking.get_run(ran.run_id).tags["cpu"] == intel
+
+
+def test_a_started_run_resumes_only_on_the_kind_it_began_on(sweeps: Path, tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run interrupted on one kind of machine waits for that kind to resume (its step times and bf16 arithmetic
+    stay one machine's); in a sweep whose runs are not compared with each other, a run not yet begun trains on
+    whatever machine is here."""
+    from gns_bench import devices
+    from gns_bench.train import losses
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    path = sweeps / "tests" / "resume.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False,
+                 echo=lambda line: None)
+    amd, intel = "family 25, model 17, stepping 1", "family 6, model 207, stepping 2"
+    monkeypatch.setattr(devices, "cpu_identity", lambda *args: amd)
+    real, calls = losses.training_loss, {"n": 0}
+
+    def interrupt_at_step_7(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 7:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(losses, "training_loss", interrupt_at_step_7)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(sweep, "smoke", **roots)
+    monkeypatch.setattr(losses, "training_loss", real)
+    (killed,) = runs_of(sweep.experiment)
+    monkeypatch.setattr(devices, "cpu_identity", lambda *args: intel)
+    outcomes = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
+    assert outcomes[killed.info.run_name].status == "WAITING", outcomes
+    assert "it began training there" in outcomes[killed.info.run_name].error
+    [other] = [o for name, o in outcomes.items() if name != killed.info.run_name]
+    assert other.status == "FINISHED"  # not a compared sweep: it trains here
+    monkeypatch.setattr(devices, "cpu_identity", lambda *args: amd)
+    [resumed] = [o for o in run_sweep(sweep, "smoke", **roots) if o.status != "SKIPPED"]
+    assert resumed.status == "FINISHED" and resumed.run_id == killed.info.run_id
