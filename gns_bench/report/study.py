@@ -28,7 +28,7 @@ from gns_bench.report.cells import (  # noqa: E402
 )
 from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
 from gns_bench.report.reference import domain_reference  # noqa: E402
-from gns_bench.report.trend import PowerLaw, fit_power_law, settled_step  # noqa: E402
+from gns_bench.report.trend import PowerLaw, fit_power_law, holds_from, settled_step  # noqa: E402
 from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
 
 # What the error-against-time figure draws: the rollout MSE over constant velocity's on the same steps (like for
@@ -49,19 +49,12 @@ DPI = 80
 
 
 def curve(row: RunRow, metric: str) -> list[tuple[float, float]]:
-    """(training seconds, value) of one `curve/<metric>` a run logged, by step (`collect` reads the curves), of a
-    finished run or one still training."""
+    """(training seconds, value) of `step_points`' points, of a finished run or one still training (`collect`
+    reads the curves)."""
     if row.record is None:
         return []
     seconds = dict(row.record.curves.get("curve/train_seconds", []))
-    if metric in RATIOS:
-        numerator, denominator = RATIOS[metric]
-        baseline = dict(row.record.curves.get(f"curve/{denominator}", []))
-        values = [(step, value / baseline[step]) for step, value in row.record.curves.get(f"curve/{numerator}", [])
-                  if baseline.get(step, 0) > 0]
-    else:
-        values = row.record.curves.get(f"curve/{metric}", [])
-    return [(seconds[step], value) for step, value in values if step in seconds and math.isfinite(value)]
+    return [(seconds[step], value) for step, value in step_points(row, metric) if step in seconds]
 
 
 def by_candidate(sweep: SweepSpec, rows: list[RunRow]) -> dict[str, list[RunRow]]:
@@ -191,9 +184,17 @@ FIT_FROM = 0.5  # the power law is fitted from half the last evaluated step on: 
 
 
 def step_points(row: RunRow, metric: str) -> list[tuple[float, float]]:
-    """(step, value) of `curve/<metric>`, finite values only."""
-    return [(step, value) for step, value in (row.record.curves.get(f"curve/{metric}", []) if row.record else [])
-            if math.isfinite(value)]
+    """(step, value) of one `curve/<metric>` a run logged, or of a `RATIOS` ratio of two, finite values only."""
+    if row.record is None:
+        return []
+    if metric in RATIOS:
+        numerator, denominator = RATIOS[metric]
+        baseline = dict(row.record.curves.get(f"curve/{denominator}", []))
+        values = [(step, value / baseline[step]) for step, value in row.record.curves.get(f"curve/{numerator}", [])
+                  if baseline.get(step, 0) > 0]
+    else:
+        values = row.record.curves.get(f"curve/{metric}", [])
+    return [(step, value) for step, value in values if math.isfinite(value)]
 
 
 def seconds_per_step(row: RunRow) -> float | None:
@@ -280,7 +281,43 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
     return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
             f"When the blocks fall at g: the first evaluated step from which each gravity ratio stays within "
             f"{GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings (its range over the "
-            f"second half of the curve).", "", *gravity, ""]
+            f"second half of the curve).", "", *gravity, "", *whole_rollouts_section(rows)]
+
+
+WHOLE_SHARE = 0.8  # "whole rollouts": at least 4 of 5 reach the end without a monitor stopping them
+
+
+def whole_points(row: RunRow) -> list[tuple[float, float, float]]:
+    """(step, share of the curve's rollouts that reached the end, whole-rollout MSE with stops held over constant
+    velocity's over the same whole horizon) at each evaluated step that logged both."""
+    stopped = dict(step_points(row, "rollout_stopped"))
+    ratio = dict(step_points(row, "held_against_cv"))
+    return [(step, 1.0 - stopped[step], ratio[step]) for step in sorted(ratio) if step in stopped]
+
+
+def whole_rollouts_section(rows: list[RunRow]) -> list[str]:
+    """From which evaluated step each run's rollouts run whole: at least `WHOLE_SHARE` of them reach the end
+    and their whole-rollout MSE (stops held) beats constant velocity's over the same horizon; the budget a cpu
+    tier needs (none when no run logged the held rollout)."""
+    measured = [(row, points) for row in rows if (points := whole_points(row))]
+    if not measured:
+        return []
+    lines = ["Whole rollouts along training: the first evaluated step from which at least "
+             f"{WHOLE_SHARE:.0%} of the curve's validation rollouts reach their end without a monitor stopping "
+             "them and their whole-rollout MSE (a stopped rollout's particles held where the stop left them) stays "
+             "below constant velocity's over the same horizon, at every later point; with the training time to "
+             "that step on the run's hardware.", "",
+             "| run | at the last point: reached the end, whole rollout vs constant velocity | whole from step | "
+             "training time to it | hardware |", "|---|---|---|---|---|"]
+    for row, points in measured:
+        step, reached, ratio = points[-1]
+        since = holds_from([(s, share >= WHOLE_SHARE and r < 1.0) for s, share, r in points])
+        seconds = dict(row.record.curves.get("curve/train_seconds", []))
+        hours = f"{seconds[since] / 3600:.2f} h" if since is not None and since in seconds else "—"
+        lines.append(f"| {row.planned.name} | step {step:,.0f}: {reached:.0%}, {ratio:.2g}x | "
+                     f"{f'{since:,.0f}' if since is not None else f'not by step {step:,.0f}'} | {hours} | "
+                     f"{machines([row]) or '—'} |")
+    return [*lines, ""]
 
 
 def trend_figure(rows: list[RunRow], fits: dict[tuple[str, str], PowerLaw | None],

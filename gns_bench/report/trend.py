@@ -12,16 +12,20 @@ import numpy as np
 from scipy import stats
 
 
+def holds_from(points: list[tuple[float, bool]]) -> float | None:
+    """The first evaluated step from which the condition holds at every later point, the last included; None
+    when it fails at the last point or there is none."""
+    since = None
+    for step, holds in sorted(points):
+        since = (step if since is None else since) if holds else None
+    return since
+
+
 def settled_step(points: list[tuple[float, float]], target: float = 1.0, tolerance: float = 0.1) -> float | None:
     """The first evaluated step from which every later point lies within `tolerance` (relative) of `target`,
     the last point included; None when the last point is outside (not settled yet) or there is none."""
-    settled = None
-    for step, value in sorted(points):
-        if math.isfinite(value) and abs(value - target) <= tolerance * abs(target):
-            settled = step if settled is None else settled
-        else:
-            settled = None
-    return settled
+    return holds_from([(step, math.isfinite(value) and abs(value - target) <= tolerance * abs(target))
+                       for step, value in points])
 
 
 @dataclass(frozen=True)

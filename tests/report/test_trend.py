@@ -45,3 +45,28 @@ def test_a_flat_curve_predicts_nothing() -> None:
     assert fit.exponent_interval[0] < 0 < fit.exponent_interval[1]
     assert fit.steps_to_reach(1.5e-9) is None
     assert fit_power_law([(0, 1.0), (10, -1.0)]) is None  # nothing positive at a positive step
+
+
+def test_whole_rollouts_are_read_from_the_curve_only_where_they_hold_to_the_end() -> None:
+    from types import SimpleNamespace
+
+    from gns_bench import tracking
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.study import whole_rollouts_section
+
+    steps = [0, 5000, 10000, 15000, 20000]
+    stopped = [1.0, 0.25, 0.0, 0.5, 0.0]  # share of the 4 validation rollouts a monitor stopped
+    held = [9.0, 0.8, 0.6, 0.7, 0.5]  # whole-rollout MSE with stops held; constant velocity's is 1
+    curves = {"curve/rollout_stopped": list(zip(steps, stopped, strict=True)),
+              "curve/rollout_mse_held": list(zip(steps, held, strict=True)),
+              "curve/baseline_cv_rollout_mse": [(s, 1.0) for s in steps],
+              "curve/train_seconds": [(s, 0.5 * s) for s in steps]}
+    record = tracking.RunRecord("id", "recipe-seed0", "RUNNING", 0, tags={"hardware": "AMD EPYC, 1 thread"},
+                                curves=curves)
+    row = RunRow(SimpleNamespace(name="recipe-seed0"), record)
+    [line] = [line for line in whole_rollouts_section([row]) if line.startswith("| recipe-seed0")]
+    # 10,000 qualifies, but half the rollouts stop at 15,000: whole from 20,000 on, 10,000 s = 2.78 h of training
+    assert line == "| recipe-seed0 | step 20,000: 100%, 0.5x | 20,000 | 2.78 h | AMD EPYC, 1 thread |"
+    curves["curve/rollout_mse_held"][-1] = (20000, 1.2)  # worse than constant velocity at the last point
+    [line] = [line for line in whole_rollouts_section([row]) if line.startswith("| recipe-seed0")]
+    assert "| not by step 20,000 | — |" in line

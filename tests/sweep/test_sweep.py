@@ -582,6 +582,7 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     header = next(line for line in text.splitlines() if line.startswith("| candidate |")).split(" | ")
     held = plain_row[header.index("whole rollout, stops held, vs constant velocity")]
     assert held.endswith(")") and "x (" in held, held
+    assert "| candidate=plain-seed0 | step 20: " in where[where.index("Whole rollouts along training"):]
     gravity = where[where.index("| run | gravity ratio within 10% of 1"):].split("\n\n")[0].splitlines()[2:]
     assert sorted(line.split(" | ")[0] for line in gravity) == ["| candidate=more-data-seed0",
                                                                  "| candidate=plain-seed0"]
