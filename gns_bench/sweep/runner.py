@@ -335,15 +335,18 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
         else:
             status[run.name] = "to run"
     if not any_kind:
-        _hold_to_kinds(sweep, tier, runs, status, saved, data_root, runs_root)
+        _hold_to_kinds(sweep, tier, runs, status, saved, [source for _, source in shared.values()], data_root,
+                       runs_root)
     return runs, status, shared
 
 
 def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str],
-                   saved: dict[str, tracking.RunRecord], data_root: Path, runs_root: Path | None) -> None:
+                   saved: dict[str, tracking.RunRecord], sources: list[tracking.RunRecord], data_root: Path,
+                   runs_root: Path | None) -> None:
     """Set the status of each run to train that `sweep/cpu_kinds.py` holds to another kind of machine: one that
     would resume from a checkpoint begun there, or any of a sweep whose runs are compared with each other, once
-    most of its runs that trained did so on another kind."""
+    most of its runs that trained did so on another kind (`sources`: the runs other sweeps trained that this
+    one shares, an ablation's default arm, count where they trained)."""
     to_run = [run for run in runs if status[run.name] == "to run"]
     if not to_run:
         return
@@ -353,6 +356,7 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
         trained = [r for r in attempts if r.status == "FINISHED" or r.metrics]  # attempts that got to train
         known = {r.name for r in attempts}
         trained += [r for r in saved.values() if r.name not in known]  # the committed summaries' runs MLflow lacks
+        trained += sources
         sweep_kind = cpu_kinds.held_kind(cpu_kinds.kind_of(r.tags) for r in sorted(trained, key=lambda r: r.start_time))
     here: dict[str, str] = {}
     for run in to_run:

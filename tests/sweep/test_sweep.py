@@ -59,7 +59,8 @@ def test_every_sweep_file_loads_and_plans() -> None:
                          "global_latent", "gravity_bias", "linear_encoder_decoder"}
     assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate",
                                                              "study-cpu_budget", "study-gravity_curve",
-                                                             "study-goop_curve", "study-goop_candidates"}
+                                                             "study-gravity_curve_water", "study-goop_curve",
+                                                             "study-goop_candidates"}
     assert {load_sweep(p).kind for p in files} == {"domain", "ablation", "stress", "study", "baseline"}
     assert load_sweep(SWEEPS_DIR / "studies" / "aggregate.toml").kind == "study"
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
