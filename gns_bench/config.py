@@ -97,6 +97,13 @@ class TrainConfig:
     # in the air nearly at rest (data/windows.py `WindowSampler` says why that matters).
     # Linear warm-up of the learning rate over the first steps (0: none, as the paper; LagrangeBench warms up).
     learning_rate_warmup_steps: int = 0
+    # A linear anneal over the last steps of the run (0: none, as the paper), from the rate the schedule has
+    # where it begins down to `learning_rate_anneal_to` at step `steps`. With the decay turned off
+    # (`learning_rate_final = learning_rate`) this is the warm-up, stable, decay schedule (Hägele et al. 2024):
+    # a budget trained at the peak rate, then annealed, where the exponential decay compressed into a short run
+    # spends its rate before the model has learned what it must (reports/study-peer).
+    learning_rate_anneal_steps: int = 0
+    learning_rate_anneal_to: float = 1e-6  # the rate the anneal ends at
     # Pushforward (Brandstetter et al. 2022, as LagrangeBench trains): from step `pushforward_start`, a share
     # `pushforward_share` of the steps first rolls the model forward 1..`pushforward_steps` steps (drawn
     # uniformly) without gradient from the noisy window, then trains the next step from the window its own
@@ -152,6 +159,10 @@ class TrainConfig:
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")
         _require(self.max_wall_seconds is None or self.max_wall_seconds > 0, "train.max_wall_seconds", "must be > 0")
         _require(self.learning_rate_warmup_steps >= 0, "train.learning_rate_warmup_steps", "must be >= 0")
+        _require(0 <= self.learning_rate_anneal_steps <= self.steps, "train.learning_rate_anneal_steps",
+                 f"must be within [0, train.steps = {self.steps}]")
+        _require(0 <= self.learning_rate_anneal_to <= self.learning_rate, "train.learning_rate_anneal_to",
+                 "must be within [0, learning_rate]")
         _require(self.pushforward_steps >= 0, "train.pushforward_steps", "must be >= 0 (0 turns it off)")
         _require(self.pushforward_start >= 0, "train.pushforward_start", "must be >= 0")
         _require(0.0 <= self.pushforward_share <= 1.0, "train.pushforward_share", "must be within [0, 1]")

@@ -15,9 +15,19 @@ from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
 
 
 def learning_rate(step: int, config: TrainConfig) -> float:
-    """The paper's exponential decay (App. B.3), after a linear warm-up where one is set."""
-    decay = 0.1 ** (step / config.learning_rate_decay_steps)
-    rate = (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
+    """The paper's exponential decay (App. B.3), after a linear warm-up where one is set, and where an anneal is
+    set, falling linearly over the last `learning_rate_anneal_steps` steps from the rate where it begins to
+    `learning_rate_anneal_to` at step `steps`."""
+    def decayed(at: int) -> float:
+        decay = 0.1 ** (at / config.learning_rate_decay_steps)
+        return (config.learning_rate - config.learning_rate_final) * decay + config.learning_rate_final
+
+    anneal_from = config.steps - config.learning_rate_anneal_steps
+    if config.learning_rate_anneal_steps and step >= anneal_from:
+        done = (step - anneal_from) / config.learning_rate_anneal_steps
+        rate = decayed(anneal_from) + (config.learning_rate_anneal_to - decayed(anneal_from)) * done
+    else:
+        rate = decayed(step)
     if step < config.learning_rate_warmup_steps:
         rate *= (step + 1) / config.learning_rate_warmup_steps
     return rate

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gns_bench.config import load_config
+from gns_bench.config import ConfigError, load_config
 from gns_bench.data.format import load_split
 from gns_bench.evaluate.evaluate import evaluate
 from gns_bench.train.checkpoints import load_simulator
@@ -221,6 +221,19 @@ def test_warm_up_ramps_the_rate_linearly_then_the_decay_goes_on() -> None:
     assert learning_rate(0, config) == pytest.approx(1e-6)  # a hundredth of the 1e-4 peak
     assert learning_rate(49, config) == pytest.approx(0.5 * learning_rate(49, load_config().train))
     assert learning_rate(100, config) == learning_rate(100, load_config().train)
+
+
+def test_the_anneal_falls_linearly_over_the_last_steps_from_where_the_schedule_stood() -> None:
+    plain = load_config(None, ["train.steps=1000", "train.learning_rate_final=1e-4"]).train  # constant 1e-4
+    wsd = load_config(None, ["train.steps=1000", "train.learning_rate_final=1e-4",
+                             "train.learning_rate_anneal_steps=200", "train.learning_rate_anneal_to=1e-6"]).train
+    assert [learning_rate(s, wsd) for s in (0, 799, 800)] == [1e-4] * 3  # stable up to the anneal's start
+    assert learning_rate(900, wsd) == pytest.approx(0.5 * (1e-4 + 1e-6))  # half-way down
+    assert learning_rate(1000, wsd) == pytest.approx(1e-6) and learning_rate(999, plain) == 1e-4
+    decaying = load_config(None, ["train.steps=1000", "train.learning_rate_anneal_steps=200"]).train
+    assert learning_rate(800, decaying) == pytest.approx(learning_rate(800, load_config().train))  # where it stood
+    with pytest.raises(ConfigError, match="learning_rate_anneal_steps"):
+        load_config(None, ["train.steps=100", "train.learning_rate_anneal_steps=200"])
 
 
 def test_pushforward_trains_from_the_models_own_window_against_the_truth(tiny_dataset: Path) -> None:
