@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -211,16 +212,12 @@ def test_broken_sweep_file_gives_a_clear_error_and_runs_nothing(sweeps: Path, tm
     assert mlflow.get_experiment_by_name("sweep:test-broken") is None
 
 
-def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    path = sweeps / "tests" / "interrupt.toml"
-    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
-    sweep = load_sweep(path)
-    # share=False: the end-to-end test trained these configs already; this test is about training them
-    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
-    from gns_bench.train import losses as loop  # where the GNS's training loss lives (its registry entry calls it)
+def interrupted_at_step_7(monkeypatch: pytest.MonkeyPatch, run: Callable[[], object]) -> None:
+    """`run()` with Ctrl-C pressed during the 7th training step (the training loss raises it), then the loss
+    restored."""
+    from gns_bench.train import losses  # where the GNS's training loss lives (its registry entry calls it)
 
-    real, calls = loop.training_loss, {"n": 0}
+    real, calls = losses.training_loss, {"n": 0}
 
     def interrupt_at_step_7(*args, **kwargs):
         calls["n"] += 1
@@ -228,12 +225,22 @@ def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(loop, "training_loss", interrupt_at_step_7)
+    monkeypatch.setattr(losses, "training_loss", interrupt_at_step_7)
     with pytest.raises(KeyboardInterrupt):
-        run_sweep(sweep, "smoke", **roots)
+        run()
+    monkeypatch.setattr(losses, "training_loss", real)
+
+
+def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    path = sweeps / "tests" / "interrupt.toml"
+    path.write_text(GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    # share=False: the end-to-end test trained these configs already; this test is about training them
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
+    interrupted_at_step_7(monkeypatch, lambda: run_sweep(sweep, "smoke", **roots))
     (killed,) = runs_of(sweep.experiment)
     assert killed.info.status == "KILLED"
-    monkeypatch.setattr(loop, "training_loss", real)
     outcomes = run_sweep(sweep, "smoke", **roots)
     assert sorted(o.status for o in outcomes) == ["FINISHED", "FINISHED"]
     runs = runs_of(sweep.experiment)
@@ -821,7 +828,6 @@ def test_a_started_run_resumes_only_on_the_kind_it_began_on(sweeps: Path, tmp_pa
     stay one machine's); in a sweep whose runs are not compared with each other, a run not yet begun trains on
     whatever machine is here."""
     from gns_bench import devices
-    from gns_bench.train import losses
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
     path = sweeps / "tests" / "resume.toml"
@@ -831,18 +837,7 @@ def test_a_started_run_resumes_only_on_the_kind_it_began_on(sweeps: Path, tmp_pa
                  echo=lambda line: None)
     amd, intel = "family 25, model 17, stepping 1", "family 6, model 207, stepping 2"
     monkeypatch.setattr(devices, "cpu_identity", lambda *args: amd)
-    real, calls = losses.training_loss, {"n": 0}
-
-    def interrupt_at_step_7(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 7:
-            raise KeyboardInterrupt
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(losses, "training_loss", interrupt_at_step_7)
-    with pytest.raises(KeyboardInterrupt):
-        run_sweep(sweep, "smoke", **roots)
-    monkeypatch.setattr(losses, "training_loss", real)
+    interrupted_at_step_7(monkeypatch, lambda: run_sweep(sweep, "smoke", **roots))
     (killed,) = runs_of(sweep.experiment)
     monkeypatch.setattr(devices, "cpu_identity", lambda *args: intel)
     outcomes = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
