@@ -249,7 +249,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
           + (f"{counts['REEVALUATED']} evaluated again, " if args.reevaluate is not None else "")
           + f"{counts['SKIPPED']} skipped (already finished), "
           f"{counts['SHARED']} shared (trained by another sweep), {counts['FAILED']} failed"
-          + (f", {counts['WAITING']} waiting for another kind of machine" if counts["WAITING"] else "")
+          + (f", {counts['WAITING']} waiting (listed above)" if counts["WAITING"] else "")
           + f"; MLflow experiment '{sweep.experiment}'")
     for outcome in outcomes:
         if outcome.status == "FAILED":
@@ -301,8 +301,8 @@ def cmd_campaign(args: argparse.Namespace) -> None:
     waiting = sum(o.status == "WAITING" for r in results for o in r.outcomes)
     print(f"campaign {campaign.name} ({args.tier}): {len(results)} sweeps, {done} runs done, {len(failed)} failed, "
           f"{len(broken)} sweeps that could not run"
-          + (f", {waiting} runs waiting for another kind of machine (--any-cpu-kind trains them here)"
-             if waiting else ""))
+          + (f", {waiting} runs waiting (for another kind of machine, or for the checkpoint a branch starts "
+             "from)" if waiting else ""))
     for sweep, outcome in failed:
         print(f"  FAILED {sweep}/{outcome.name}: {outcome.error}")
     for result in broken:

@@ -115,6 +115,13 @@ class TrainConfig:
     start_windows: int = 50
     seed: int = 0
     checkpoint_every: int = 1000
+    # Keep the checkpoint of every curve point (`eval_every`) as checkpoint-<step>.pt beside checkpoint.pt, and
+    # start a run from one of them (`init_from`: its weights, optimiser state, step and training time; the run
+    # may differ from the one that wrote it only in `steps`, the anneal and what a resume may change). A run
+    # trained at a constant rate is then annealed from any point of its curve for a few steps (a branch), and
+    # each branch's error is what that budget buys with a schedule fitted to it.
+    keep_checkpoints: bool = False
+    init_from: str = ""
     log_every: int = 100
     device: str = "auto"  # "auto" picks CUDA when present
     num_threads: int | None = None  # torch CPU threads; None keeps torch's default

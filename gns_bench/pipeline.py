@@ -174,6 +174,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
         raise NotADirectoryError(f"{out_dir} is a file; the run's output (--out) is a directory")
     if resume and (out_dir / CHECKPOINT_NAME).exists():  # a checkpoint that cannot resume fails before MLflow
         check_resumable(out_dir / CHECKPOINT_NAME, config, meta)
+    elif config.train.init_from:  # a branch: its checkpoint must exist and fit, before anything is created
+        check_resumable(Path(config.train.init_from), config, meta, branch=True)
     if distributed.launched_rank() != 0:
         train(config, dataset_dir, out_dir, resume=resume, progress=False, trajectories=trajectories)
         return RunSummary("", out_dir, None, {})

@@ -45,7 +45,8 @@ from gns_bench.sweep.summaries import RESTORED_FROM, record_runs, summarised_run
 @dataclass
 class RunOutcome:
     name: str
-    status: str  # FINISHED, SKIPPED, SHARED, REEVALUATED, FAILED, WAITING (held to another kind of machine)
+    status: str  # FINISHED, SKIPPED, SHARED, REEVALUATED, FAILED, WAITING (for another kind of machine, or the
+    # checkpoint a branch starts from)
     run_id: str = ""
     error: str = ""
     metrics: dict[str, float] | None = None
@@ -177,12 +178,15 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     dataset = training_data(run, data_root)
     key = dataset_run_key(run, data_root)
     out_dir = run_dir(runs_root, run)
+    trunk = branch_checkpoint(run.config, runs_root)
+    config = run.config if trunk is None else dataclasses.replace(
+        run.config, train=dataclasses.replace(run.config.train, init_from=str(trunk)))
     resume = _resumable(out_dir, key)
     if not resume and out_dir.exists():
         set_aside(out_dir)  # another plan's attempt (its key differs), or a run whose MLflow record is gone
     try:
         summary = train_run(
-            run.config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
+            config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
             eval_dataset_dir=evaluation_data(run, data_root) if run.evaluated_elsewhere else None,
             progress=progress, extra_params=_sweep_params(run), extra_tags=_sweep_tags(run, key))
     except KeyboardInterrupt:
@@ -337,7 +341,26 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     if not any_kind:
         _hold_to_kinds(sweep, tier, runs, status, saved, [source for _, source in shared.values()], data_root,
                        runs_root)
+    if runs_root is not None:
+        for run in runs:
+            trunk = branch_checkpoint(run.config, runs_root)
+            if status[run.name] == "to run" and trunk is not None and not trunk.is_file():
+                status[run.name] = f"{WAITS_FOR_TRUNK} {trunk}"
     return runs, status, shared
+
+
+WAITS_FOR_TRUNK = "waits for the checkpoint it starts from:"
+RUNS_PREFIX = "runs:"  # train.init_from = "runs:<sweep>/<tier>/<run>/checkpoint-<step>.pt", under the runs root
+
+
+def branch_checkpoint(config: Config, runs_root: Path) -> Path | None:
+    """The checkpoint a run starts from (`train.init_from`), a `runs:` path taken under `runs_root` (so that a
+    sweep file names another sweep's kept checkpoint the same way on every machine, and its key with it);
+    None for a run that starts afresh."""
+    source = config.train.init_from
+    if not source:
+        return None
+    return runs_root / source.removeprefix(RUNS_PREFIX) if source.startswith(RUNS_PREFIX) else Path(source)
 
 
 def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str],
@@ -442,15 +465,16 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     outcomes = again + [RunOutcome(r.name, "SKIPPED") for r in runs
                         if status[r.name] in (FINISHED, SUMMARISED) and r.name not in done_again]
     waiting = [RunOutcome(r.name, "WAITING", error=status[r.name]) for r in runs
-               if status[r.name].startswith(cpu_kinds.WAITS)]
+               if status[r.name].startswith((cpu_kinds.WAITS, WAITS_FOR_TRUNK))]
     selected = f" (--only {' '.join(only)})" if only else ""
     summarised = sum(status[r.name] == SUMMARISED for r in runs)
     echo(f"sweep {sweep.name} (tier {tier}){selected}: {len(runs)} runs, {len(outcomes)} already finished"
          + (f" ({summarised} known only from the committed run summary)" if summarised else "")
          + f", {len(shared)} shared with other sweeps, {len(pending)} to run" + ("" if train else ", not trained")
-         + (f", {len(waiting)} waiting for another kind of machine" if waiting else ""))
+         + (f", {len(waiting)} waiting" if waiting else ""))
     for outcome in waiting:
-        echo(f"  {outcome.name}: {outcome.error}; --any-cpu-kind trains it here")
+        echo(f"  {outcome.name}: {outcome.error}"
+             + ("; --any-cpu-kind trains it here" if outcome.error.startswith(cpu_kinds.WAITS) else ""))
     outcomes += waiting
     if not train:
         pending = []

@@ -37,7 +37,9 @@ from gns_bench.train.losses import learning_rate, pushed_forward, pushforward_un
 
 # Train settings that may change between an interrupted run and its resumption.
 RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads", "max_wall_seconds",
-                     "eval_every", "eval_trajectories", "eval_rollout_steps"}
+                     "eval_every", "eval_trajectories", "eval_rollout_steps", "keep_checkpoints"}
+# And between the run that wrote a checkpoint and a run that starts from it (`train.init_from`).
+BRANCH_CHANGES = RESUMABLE_CHANGES | {"learning_rate_anneal_steps", "learning_rate_anneal_to", "init_from"}
 
 
 @dataclass
@@ -186,15 +188,17 @@ def load_training_split(config: Config, dataset_dir: str | Path, metadata: Metad
     return load_split(dataset_dir, "train", metadata, min_length=config.model.input_sequence_length + 1)
 
 
-def check_resumable(path: Path, config: Config, metadata: Metadata) -> dict:
-    """The checkpoint at `path`, loaded, if `config` on `metadata`'s dataset can resume from it; raises otherwise
-    (callers check this before they open anything a failure would leave behind)."""
+def check_resumable(path: Path, config: Config, metadata: Metadata, branch: bool = False) -> dict:
+    """The checkpoint at `path`, loaded, if `config` on `metadata`'s dataset can resume from it (`branch`: start
+    from it, `train.init_from`); raises otherwise (callers check this before they open anything a failure would
+    leave behind)."""
     saved = load_checkpoint(path, "cpu")
-    _check_resumable(saved, config, metadata, path)
+    _check_resumable(saved, config, metadata, path, BRANCH_CHANGES if branch else RESUMABLE_CHANGES)
     return saved
 
 
-def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path) -> None:
+def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path,
+                     may_change: set[str] = RESUMABLE_CHANGES) -> None:
     if saved["metadata"].get("content_hash") != metadata.content_hash:
         raise ValueError(f"{path}: checkpoint was trained on dataset {saved['metadata'].get('content_hash')}, "
                          f"not {metadata.content_hash}")
@@ -202,7 +206,7 @@ def _check_resumable(saved: dict, config: Config, metadata: Metadata, path: Path
     if old.model != config.model:
         raise ValueError(f"{path}: model config differs from the checkpoint's; cannot resume")
     changed = {f.name for f in dataclasses.fields(TrainConfig)
-               if getattr(old.train, f.name) != getattr(config.train, f.name)} - RESUMABLE_CHANGES
+               if getattr(old.train, f.name) != getattr(config.train, f.name)} - may_change
     if changed:
         raise ValueError(f"{path}: train settings {sorted(changed)} differ from the checkpoint's; cannot resume")
 
@@ -248,9 +252,12 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
     step, earlier_wall_time, speed, resumed_window = 0, 0.0, None, []
-    if resume and checkpoint_path.exists():
-        saved = load_checkpoint(checkpoint_path, device)
-        _check_resumable(saved, config, metadata, checkpoint_path)
+    start_from = (checkpoint_path if resume and checkpoint_path.exists()
+                  else Path(tc.init_from) if tc.init_from and not checkpoint_path.exists() else None)
+    if start_from is not None:  # a resume, or a branch from another run's checkpoint
+        saved = load_checkpoint(start_from, device)
+        _check_resumable(saved, config, metadata, start_from,
+                         RESUMABLE_CHANGES if start_from == checkpoint_path else BRANCH_CHANGES)
         simulator.load_state_dict(saved["model"])
         optimiser.load_state_dict(saved["optimizer"])
         step = int(saved["step"])
@@ -276,10 +283,10 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     def training_seconds() -> float:
         return clock.total
 
-    def checkpoint(at_step: int) -> None:
+    def checkpoint(at_step: int, path: Path = checkpoint_path) -> None:
         if not group.is_main:
             return
-        save_checkpoint(checkpoint_path, {
+        save_checkpoint(path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
             "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed), "log_window": list(window_losses)})
@@ -332,6 +339,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             if step % tc.checkpoint_every == 0:
                 checkpoint(step)
             if evaluating and step % tc.eval_every == 0:
+                if tc.keep_checkpoints:  # a point a branch can start from
+                    checkpoint(step, out_dir / f"checkpoint-{step}.pt")
                 evaluate_now(step)
                 simulator.train()
     except KeyboardInterrupt:

@@ -848,3 +848,50 @@ def test_a_started_run_resumes_only_on_the_kind_it_began_on(sweeps: Path, tmp_pa
     monkeypatch.setattr(devices, "cpu_identity", lambda *args: amd)
     [resumed] = [o for o in run_sweep(sweep, "smoke", **roots) if o.status != "SKIPPED"]
     assert resumed.status == "FINISHED" and resumed.run_id == killed.info.run_id
+
+
+BRANCHES = '''description = "a trunk and an annealed branch of it"
+domain = "tiny"
+
+[tiers.smoke.config.model]
+latent_size = 8
+mlp_hidden_size = 8
+
+[tiers.smoke.config.train]
+eval_every = 10
+eval_trajectories = 1
+eval_rollout_steps = 5
+keep_checkpoints = true
+
+[candidates.trunk]
+
+[candidates.branch.config.train]
+init_from = "runs:study-branches/smoke/candidate=trunk-seed0/checkpoint-10.pt"
+learning_rate_anneal_steps = 5
+'''
+
+
+def test_a_branch_waits_for_its_trunks_checkpoint_then_starts_from_it(sweeps: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A candidate that starts from another run's kept checkpoint (`train.init_from = "runs:..."`, under the
+    runs root wherever that is, so its key is the same on every machine) waits until that checkpoint exists."""
+    from gns_bench.sweep.runner import dataset_run_key
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (sweeps / "studies").mkdir()
+    path = sweeps / "studies" / "branches.toml"
+    path.write_text(BRANCHES)
+    sweep = load_sweep(path)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
+    first = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
+    assert first["candidate=trunk-seed0"].status == "FINISHED"
+    waiting = first["candidate=branch-seed0"]
+    assert waiting.status == "WAITING" and waiting.error.endswith("candidate=trunk-seed0/checkpoint-10.pt"), waiting
+    second = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
+    branch = second["candidate=branch-seed0"]
+    assert branch.status == "FINISHED", branch.error
+    record = tracking.get_run(branch.run_id)
+    trunk_checkpoint = tmp_path / "runs" / "study-branches" / "smoke" / "candidate=trunk-seed0" / "checkpoint-10.pt"
+    assert record.params["train.init_from"] == str(trunk_checkpoint)  # what it started from, logged whole
+    planned = next(r for r in sweep.plan("smoke") if r.name == "candidate=branch-seed0")
+    assert record.tags["run_key"] == dataset_run_key(planned, tmp_path / "data")  # keyed by the runs: name

@@ -10,7 +10,7 @@ import pytest
 from gns_bench.config import ConfigError, load_config
 from gns_bench.data.format import load_split
 from gns_bench.evaluate.evaluate import evaluate
-from gns_bench.train.checkpoints import load_simulator
+from gns_bench.train.checkpoints import load_checkpoint, load_simulator
 from gns_bench.train.loop import learning_rate, train
 from gns_bench.train.rate import measure_step_rate, steady_rate
 
@@ -81,6 +81,28 @@ def test_stop_after_runs_the_start_of_the_whole_run_and_the_rate_probe_uses_it(t
     assert rate.seconds_for(30) == pytest.approx(30 / rate.steps_per_second)
     with pytest.raises(ValueError, match="the run has 30 steps, fewer than the 31 to measure"):
         measure_step_rate(config, tiny_dataset, steps=30, warm_up=1)
+
+
+def test_a_branch_from_a_kept_checkpoint_goes_on_as_the_trunk_did_until_its_anneal(tiny_dataset: Path,
+                                                                                    tmp_path: Path) -> None:
+    """`train.keep_checkpoints` keeps each curve point's checkpoint; a run started from one (`train.init_from`)
+    continues the trunk's steps, rate and training clock bit for bit, and an anneal over its last steps changes
+    only those. A branch that changes anything else is refused."""
+    trunk_config = load_config(None, QUICK + ["train.steps=20", "train.eval_every=10", "train.keep_checkpoints=true"])
+    trunk = train(trunk_config, tiny_dataset, tmp_path / "trunk", progress=False, on_eval=lambda *args: None)
+    kept = tmp_path / "trunk" / "checkpoint-10.pt"
+    assert kept.is_file() and (tmp_path / "trunk" / "checkpoint-20.pt").is_file()
+    branch = train(load_config(None, QUICK + ["train.steps=20", f"train.init_from={kept}"]), tiny_dataset,
+                   tmp_path / "branch", progress=False)
+    assert branch.start_step == 10 and branch.losses == trunk.losses[10:]  # bit for bit
+    assert branch.wall_time_s > load_checkpoint(kept)["wall_time_s"] > 0  # the trunk's training time counts
+    annealed = train(load_config(None, QUICK + ["train.steps=20", f"train.init_from={kept}",
+                                                "train.learning_rate_anneal_steps=5"]),
+                     tiny_dataset, tmp_path / "annealed", progress=False)
+    assert annealed.losses[:6] == trunk.losses[10:16] and annealed.losses[6:] != trunk.losses[16:]
+    with pytest.raises(ValueError, match="noise_std"):
+        train(load_config(None, QUICK + ["train.steps=20", f"train.init_from={kept}", "train.noise_std=1e-3"]),
+              tiny_dataset, tmp_path / "other", progress=False)
 
 
 def test_resume_refuses_a_different_model(tiny_dataset: Path, tmp_path: Path) -> None:
