@@ -119,7 +119,8 @@ class TrainConfig:
     # start a run from one of them (`init_from`: its weights, optimiser state, step and training time; the run
     # may differ from the one that wrote it only in `steps`, the anneal and what a resume may change). A run
     # trained at a constant rate is then annealed from any point of its curve for a few steps (a branch), and
-    # each branch's error is what that budget buys with a schedule fitted to it.
+    # each branch's error is what that budget buys with a schedule fitted to it. In a sweep, `init_from` may
+    # name "runs:<sweep>/<tier>/<run>/checkpoint-<step>.pt" under the runs root, `{seed}` the run's seed.
     keep_checkpoints: bool = False
     init_from: str = ""
     log_every: int = 100

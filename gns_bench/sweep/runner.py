@@ -355,9 +355,10 @@ RUNS_PREFIX = "runs:"  # train.init_from = "runs:<sweep>/<tier>/<run>/checkpoint
 
 def branch_checkpoint(config: Config, runs_root: Path) -> Path | None:
     """The checkpoint a run starts from (`train.init_from`), a `runs:` path taken under `runs_root` (so that a
-    sweep file names another sweep's kept checkpoint the same way on every machine, and its key with it);
-    None for a run that starts afresh."""
-    source = config.train.init_from
+    sweep file names another sweep's kept checkpoint the same way on every machine, and its key with it), with
+    `{seed}` replaced by the run's seed (each seed branches from its own trunk); None for a run that starts
+    afresh."""
+    source = config.train.init_from.replace("{seed}", str(config.train.seed))
     if not source:
         return None
     return runs_root / source.removeprefix(RUNS_PREFIX) if source.startswith(RUNS_PREFIX) else Path(source)

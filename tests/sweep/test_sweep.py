@@ -61,7 +61,7 @@ def test_every_sweep_file_loads_and_plans() -> None:
     assert {n for n in names if n.startswith("study-")} == {"study-learning_rate_decay", "study-aggregate",
                                                              "study-cpu_budget", "study-gravity_curve",
                                                              "study-gravity_curve_water", "study-goop_curve",
-                                                             "study-goop_candidates"}
+                                                             "study-goop_candidates", "study-goop_branches"}
     assert {load_sweep(p).kind for p in files} == {"domain", "ablation", "stress", "study", "baseline"}
     assert load_sweep(SWEEPS_DIR / "studies" / "aggregate.toml").kind == "study"
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
@@ -866,7 +866,7 @@ keep_checkpoints = true
 [candidates.trunk]
 
 [candidates.branch.config.train]
-init_from = "runs:study-branches/smoke/candidate=trunk-seed0/checkpoint-10.pt"
+init_from = "runs:study-branches/smoke/candidate=trunk-seed{seed}/checkpoint-10.pt"
 learning_rate_anneal_steps = 5
 '''
 
