@@ -54,7 +54,7 @@ from gns_bench.report.index import write_index
 from gns_bench.report.kept import KEPT_FILE, UNFINISHED, read_kept, write_kept
 from gns_bench.report.reference import ablation_reference, display_name, domain_reference, inference_reference
 from gns_bench.report.stability import sweep_section, write_stability_report
-from gns_bench.report.study import candidates_section
+from gns_bench.report.study import candidates_section, gravity_studies_section
 from gns_bench.report.verdict import (
     EQUIVALENCE_MARGIN,
     ERROR,
@@ -495,7 +495,8 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
         lines += section
         extras = {"stress": stress} if stress else {}
     elif sweep.kind == "domain":
-        lines += domain_tables([(sweep, rows)], compare)
+        lines += domain_tables([(sweep, rows)], compare) + gravity_studies_section(sweep.domain, tier,
+                                                                                   out_dir.parent.parent)
     elif sweep.candidates:
         lines += candidates_section(sweep, tier, rows, out_dir, compare)
     else:

@@ -26,10 +26,10 @@ from gns_bench.report.cells import (  # noqa: E402
     shared_cores_mark,
     steps_covered,
 )
-from gns_bench.report.collect import RunRow, mean_std  # noqa: E402
+from gns_bench.report.collect import RunRow, collect, mean_std  # noqa: E402
 from gns_bench.report.reference import domain_reference  # noqa: E402
 from gns_bench.report.trend import PowerLaw, fit_power_law, holds_from, settled_step  # noqa: E402
-from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec  # noqa: E402
+from gns_bench.sweep.spec import CANDIDATE_AXIS, SweepSpec, discover_sweeps, load_sweep  # noqa: E402
 
 # What the error-against-time figure draws: the rollout MSE over constant velocity's on the same steps (like for
 # like however early a monitor stopped a rollout; an untrained model's rollouts stop at once, so its raw rollout
@@ -203,7 +203,8 @@ def seconds_per_step(row: RunRow) -> float | None:
     return points[-1][1] / points[-1][0] if points and points[-1][0] > 0 else None
 
 
-def _settled(row: RunRow, metric: str) -> str:
+def settled_cell(row: RunRow, metric: str) -> str:
+    """From which evaluated step a gravity ratio stays within `GRAVITY_TOLERANCE` of 1, or how far it swings."""
     points = step_points(row, metric)
     if not points:
         return "—"
@@ -275,8 +276,8 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
             lines.append(f"| {row.planned.name} | {label} | {points[-1][0]:,.0f} | {fmt(points[-1][1])} | {law} | "
                          f"{prediction} | {machines([row]) or '—'} |")
     gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout |", "|---|---|---|"]
-    gravity += [f"| {row.planned.name} | {_settled(row, 'gravity_ratio')} | {_settled(row, 'rollout_gravity_ratio')} |"
-                for row in rows]
+    gravity += [f"| {row.planned.name} | {settled_cell(row, 'gravity_ratio')} | "
+                f"{settled_cell(row, 'rollout_gravity_ratio')} |" for row in rows]
     figure = trend_figure(rows, fits, paper, out_dir / "trend.png")
     return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
             f"When the blocks fall at g: the first evaluated step from which each gravity ratio stays within "
@@ -407,3 +408,25 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
                   f"![physical diagnostics against training steps]({diagnostics.name})", "",
                   *(unfinished_curves(rows) if figure is None else [])]
     return lines + trend_section(groups, plan.domain, out_dir) if plan else lines
+
+
+def gravity_studies_section(domain: str, tier: str, reports_root: Path) -> list[str]:
+    """For a domain's report: each run of a study of the same domain that logged the gravity diagnostic along
+    training (sweeps/studies/gravity_curve*.toml, the GOOP curves), from which step its blocks fall at g or how
+    far its gravity ratio still swings, with a link to the study (none when no study logged it)."""
+    lines = []
+    for study in (load_sweep(path) for path in discover_sweeps()):
+        if study.kind != "study" or study.domain != domain or tier not in study.tiers:
+            continue
+        for row in collect(study, tier, reports_root):
+            if step_points(row, "gravity_ratio"):
+                points = step_points(row, "gravity_ratio")
+                lines.append(f"| [{study.name}](../../{study.name}/{tier}/README.md) | {row.planned.name} | "
+                             f"{points[-1][0]:,.0f} | {settled_cell(row, 'gravity_ratio')} | "
+                             f"{settled_cell(row, 'rollout_gravity_ratio')} |")
+    if not lines:
+        return []
+    return ["Along training, in the studies of this domain: the first evaluated step from which each gravity ratio "
+            f"stays within {GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings.", "",
+            "| study | run | evaluated to step | gravity ratio, true windows | along the rollout |",
+            "|---|---|---|---|---|", *lines, ""]

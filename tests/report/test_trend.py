@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -70,3 +71,17 @@ def test_whole_rollouts_are_read_from_the_curve_only_where_they_hold_to_the_end(
     curves["curve/rollout_mse_held"][-1] = (20000, 1.2)  # worse than constant velocity at the last point
     [line] = [line for line in whole_rollouts_section([row]) if line.startswith("| recipe-seed0")]
     assert "| not by step 20,000 | — |" in line
+
+
+def test_a_domain_report_says_where_its_gravity_studies_got(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The WATERDROP report carries the gravity study's verdict on its blocks (from the committed run summary, no
+    MLflow store): each run, how far it was evaluated, and that g is not yet learned within 10%."""
+    from gns_bench.report.study import gravity_studies_section
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'empty.db'}")
+    reports = Path(__file__).resolve().parents[2] / "reports"
+    lines = gravity_studies_section("waterdrop", "cpu", reports)
+    rows = {row.split(" | ")[1]: row for row in lines if row.startswith("| [study-gravity_curve]")}
+    for name in ("candidate=release-sampler-seed0", "candidate=start-share-seed0"):
+        assert "| 30,000 | not by step 30,000" in rows[name]
+    assert not any("goop" in line for line in lines)  # another domain's studies stay in their own report
