@@ -495,8 +495,9 @@ def write_sweep_report(sweep: SweepSpec, tier: str, out_dir: Path, rows: list[Ru
         lines += section
         extras = {"stress": stress} if stress else {}
     elif sweep.kind == "domain":
-        lines += domain_tables([(sweep, rows)], compare) + gravity_studies_section(sweep.domain, tier,
-                                                                                   out_dir.parent.parent)
+        lines += domain_tables([(sweep, rows)], compare)
+        if compare:  # a smoke run is a pipeline check: its studies' curves say nothing about gravity
+            lines += gravity_studies_section(sweep.domain, tier, out_dir.parent.parent)
     elif sweep.candidates:
         lines += candidates_section(sweep, tier, rows, out_dir, compare)
     else:

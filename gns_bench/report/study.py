@@ -227,6 +227,8 @@ def _prediction(fit: PowerLaw | None, paper: float | None, per_step: float | Non
         return law, "no paper figure"
     if last[1] <= paper:
         return law, f"reached: {fmt(last[1])} at step {last[0]:,.0f}"
+    if fit.exponent_interval is None:  # two points fit any line: no extrapolation without an interval
+        return law, f"too few points to extrapolate ({fit.points}; the interval needs 3)"
     steps = fit.steps_to_reach(paper)
     if steps is None:
         return law, "no falling trend to extrapolate (the exponent, or its interval, reaches 0)"
