@@ -169,8 +169,8 @@ class TrainConfig:
         _require(self.learning_rate_warmup_steps >= 0, "train.learning_rate_warmup_steps", "must be >= 0")
         _require(0 <= self.learning_rate_anneal_steps <= self.steps, "train.learning_rate_anneal_steps",
                  f"must be within [0, train.steps = {self.steps}]")
-        _require(0 <= self.learning_rate_anneal_to <= self.learning_rate, "train.learning_rate_anneal_to",
-                 "must be within [0, learning_rate]")
+        _require(not self.learning_rate_anneal_steps or 0 <= self.learning_rate_anneal_to <= self.learning_rate,
+                 "train.learning_rate_anneal_to", "must be within [0, learning_rate]")
         _require(self.pushforward_steps >= 0, "train.pushforward_steps", "must be >= 0 (0 turns it off)")
         _require(self.pushforward_start >= 0, "train.pushforward_start", "must be >= 0")
         _require(0.0 <= self.pushforward_share <= 1.0, "train.pushforward_share", "must be within [0, 1]")

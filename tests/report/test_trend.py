@@ -85,3 +85,12 @@ def test_a_domain_report_says_where_its_gravity_studies_got(tmp_path: Path, monk
     for name in ("candidate=release-sampler-seed0", "candidate=start-share-seed0"):
         assert "| 30,000 | not by step 30,000" in rows[name]
     assert not any("goop" in line for line in lines)  # another domain's studies stay in their own report
+
+
+def test_no_budget_is_extrapolated_from_two_points() -> None:
+    from gns_bench.report.study import _prediction
+
+    two = fit_power_law([(32000.0, 0.47), (33000.0, 0.11)], 0.5)  # a steep fall over an anneal's two points
+    assert two is not None and two.exponent_interval is None
+    _, prediction = _prediction(two, 0.0173, 0.6, (33000.0, 0.11))
+    assert prediction == "too few points to extrapolate (2; the interval needs 3)"
