@@ -28,10 +28,13 @@ WAITS = "waits for a machine of CPU kind"  # the status of a run held to another
 
 
 def kind_of(tags: Mapping[str, str]) -> str:
-    """The kind of machine a run's environment tags (`tracking.environment_tags`) name; "" where none."""
+    """The kind of machine a run's environment tags (`tracking.environment_tags`) name; "" where none. The
+    `cpu` tag's clock ("2596 MHz") is left out: /proc/cpuinfo reports the current frequency, which moves on a
+    machine that scales it, and one kind of CPU must not become two."""
     if str(tags.get("device", "cpu")).startswith("cuda"):
         return tags.get("hardware", "")
-    return tags.get("cpu") or tags.get("hardware", "")
+    identity = ", ".join(part for part in tags.get("cpu", "").split(", ") if part and not part.endswith(" MHz"))
+    return identity or tags.get("hardware", "")
 
 
 def kind_here(device: torch.device) -> str:
