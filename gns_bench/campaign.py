@@ -32,10 +32,12 @@ class SweepResult:
 
 
 def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable[[str], None] = print, *,
-                  timed: bool = False, reports_root: Path | None = Path("reports")) -> None:
+                  timed: bool = False, reports_root: Path | None = Path("reports"), runs_root: Path | None = None,
+                  any_kind: bool = False) -> None:
     """Print each sweep's runs and their status, generating nothing. `timed`: with each run's step rate
     measured here, its training and evaluation time, and the campaign's total still to run, a point two sweeps
-    share counted once (`sweep/timing.py`)."""
+    share counted once (`sweep/timing.py`). `runs_root` and `any_kind` as the campaign itself would run: a
+    branch whose checkpoint is not under `runs_root` waits, a run held to another CPU kind waits."""
     if timed:
         from gns_bench.sweep.timing import Total, timed_plan, total_line
 
@@ -49,7 +51,8 @@ def plan_campaign(campaign: Campaign, tier: str, data_root: Path, echo: Callable
         return
     for path in campaign.sweeps:
         sweep = load_sweep(path)
-        runs, status, _ = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root)
+        runs, status, _ = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root,
+                                  runs_root=runs_root, any_kind=any_kind)
         echo(format_plan(sweep, tier, runs, status))
 
 

@@ -290,7 +290,8 @@ def cmd_campaign(args: argparse.Namespace) -> None:
 
     campaign = load_campaign(args.file)
     if args.dry_run or args.time:
-        plan_campaign(campaign, args.tier, args.data_root, timed=args.time, reports_root=args.reports_root)
+        plan_campaign(campaign, args.tier, args.data_root, timed=args.time, reports_root=args.reports_root,
+                      runs_root=args.runs_root, any_kind=args.any_cpu_kind)
         return
     results = run_campaign(campaign, args.tier, data_root=args.data_root, runs_root=args.runs_root,
                            reports_root=args.reports_root, launcher=args.launcher, cluster=args.cluster,
@@ -351,7 +352,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="benchmark training and rollout speed against this machine's limits")
     p.add_argument("--out", type=Path, default=None,
                    help="where bench.json, README.md, PNG go (default: reports/bench/<machine>/, e.g. "
-                        "amd-epyc-avx512bf16, and reports/bench/README.md then compares every machine measured)")
+                        "amd-epyc-family-26-model-2-avx512bf16: the CPU's model, generation and bf16 unit; "
+                        "reports/bench/README.md then compares every machine measured)")
     p.add_argument("--quick", action="store_true", help="small sizes: seconds, for a first look")
     p.add_argument("--device", default="auto", help="auto (CUDA when present, else CPU), cpu, cuda, cuda:1, ...")
     p.add_argument("--no-mlflow", action="store_true", help="do not log the results to MLflow")

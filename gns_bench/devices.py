@@ -72,17 +72,21 @@ def cpu_features() -> list[str]:
     return [flag for flag in ("amx_bf16", "amx_tile", "avx512_bf16", "avx512f") if flag in flags]
 
 
-def machine_slug(device: torch.device) -> str:
-    """A folder name for what a benchmark ran on: the GPU's name, or the CPU model with its bf16 matrix units
-    ("intel-xeon-processor-amx", "amd-epyc-avx512bf16"), which decide what is fastest on it."""
+def machine_slug(device: torch.device, cpuinfo: str | Path = "/proc/cpuinfo") -> str:
+    """A folder name for what a benchmark ran on: the GPU's name, or the CPU model with its generation and its
+    bf16 matrix units ("amd-epyc-family-26-model-2-avx512bf16"), which decide what is fastest on it. The
+    generation keeps two machines sold under one model name apart: "AMD EPYC" with AVX-512 BF16 names a Zen 4
+    part whose bf16 GEMM ran 417 GFLOP/s on 2 threads and one that ran 888 (reports/bench)."""
     import re
 
     if device.type == "cuda":
         name = f"cuda {torch.cuda.get_device_name(device)}"
     else:
-        features = cpu_features()
-        unit = "amx" if "amx_tile" in features else "avx512bf16" if "avx512_bf16" in features else ""
-        name = f"{cpu_model()} {unit}"
+        fields = _first_processor(cpuinfo)
+        flags = set(fields.get("flags", "").split())
+        unit = "amx" if "amx_tile" in flags else "avx512bf16" if "avx512_bf16" in flags else ""
+        model = fields.get("model name") or cpu_model()
+        name = f"{model} {_generation(fields)} {unit}"
     name = re.sub(r"\((r|tm)\)", "", name.lower())
     return re.sub(r"[^a-z0-9]+", "-", name).strip("-")
 

@@ -44,7 +44,9 @@ def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
 
     results = run_bench(tmp_path / "this-machine", BenchSettings.tiny(), log_to_mlflow=False)
     index = write_bench_index(tmp_path).read_text()  # every machine's targets, linking to its tables
-    assert f"## {results['environment']['hardware']} (quick sizes)" in index
+    env = results["environment"]  # the CPU's generation beside its model name (one name covers two AMD EPYCs)
+    machine = env["hardware"] if env["device"].startswith("cuda") else f"{env['hardware']} (CPU {env['cpu']})"
+    assert f"## {machine} (quick sizes)" in index
     assert "[this-machine/](this-machine/README.md)" in index and "waterdrop rollout step <= 25 ms" in index
     tmp_path = tmp_path / "this-machine"
     saved = json.loads((tmp_path / "bench.json").read_text())
@@ -117,5 +119,5 @@ def test_a_gpus_report_says_what_its_small_graphs_cost_from_its_own_scaling_rows
     first = f"{rows[0]['step_s'] / rows[0]['particles'] * 1e6:.2g} µs a particle at {rows[0]['particles']:,}"
     last = f"against {rows[-1]['step_s'] / rows[-1]['particles'] * 1e6:.2g} at {rows[-1]['particles']:,}"
     assert first in why_missed(gpu) and last in why_missed(gpu)
-    cpu = json.loads((bench / "amd-epyc-avx512bf16/bench.json").read_text())
+    cpu = json.loads((bench / "amd-epyc-family-25-model-17-avx512bf16/bench.json").read_text())
     assert "µs a particle" not in why_missed(cpu)

@@ -30,7 +30,7 @@ def test_the_index_lists_a_gpus_cuda_tests_and_runs_at_once(tmp_path: Path) -> N
 
     folder = tmp_path / "some-gpu"
     folder.mkdir()
-    shutil.copy(Path(__file__).parents[1] / "reports/bench/amd-epyc-avx512bf16/bench.json", folder)
+    shutil.copy(Path(__file__).parents[1] / "reports/bench/amd-epyc-family-25-model-17-avx512bf16/bench.json", folder)
     (folder / "cuda-tests.xml").write_text(
         '<?xml version="1.0"?><testsuites><testsuite tests="5" failures="1" errors="0" skipped="1"/></testsuites>')
     write_parallel_report({"runs": 4, "steps": 300, "hardware_one_at_a_time": "GPU", "hardware_at_once": "GPU",

@@ -235,3 +235,33 @@ def test_the_front_page_counts_the_models_a_stress_sweep_would_train_again(sweep
     assert any("stress tests of domain-one" in line for line in said), said  # the checkpoint was here: tested
     row = campaign_section(tmp_path / "reports", whole, sweeps, tiers=("smoke",))[-2]
     assert row.startswith("| smoke | 1 of 1 |") and "| none |" in row, row
+
+
+def test_a_campaign_dry_run_shows_a_branch_waiting_for_its_trunk(sweeps: Path, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """`gns-bench campaign --dry-run` plans with the runs root the campaign would use: a branch whose trunk's
+    checkpoint is not there yet shows as waiting, not "to run", and as "to run" once it is."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (sweeps / "studies").mkdir()
+    (sweeps / "studies" / "branches.toml").write_text(
+        SWEEP.format(name="a trunk and a branch of it", steps=1)
+        + '\n[candidates.trunk]\n\n[candidates.branch.config.train]\n'
+        'init_from = "runs:study-branches/smoke/candidate=trunk-seed{seed}/checkpoint-10.pt"\n')
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["studies/branches.toml"]\n')
+    ensure_dataset("tiny", "smoke", 0, tmp_path / "data", progress=False)
+
+    def plan() -> dict[str, str]:
+        said: list[str] = []
+        plan_campaign(load_campaign(path, sweeps), "smoke", tmp_path / "data", echo=said.append, reports_root=None,
+                      runs_root=tmp_path / "runs")
+        rows = [line for text in said for line in text.splitlines() if "candidate=" in line]
+        return {row.split()[1]: row for row in rows}
+
+    before = plan()
+    assert "waits for the checkpoint it starts from:" in before["candidate=branch-seed0"], before
+    assert "to run" in before["candidate=trunk-seed0"]
+    trunk = tmp_path / "runs" / "study-branches" / "smoke" / "candidate=trunk-seed0" / "checkpoint-10.pt"
+    trunk.parent.mkdir(parents=True)
+    trunk.write_bytes(b"")
+    assert "to run" in plan()["candidate=branch-seed0"]

@@ -73,3 +73,24 @@ def test_speed_settings_are_cached_per_cpu_generation(tmp_path, monkeypatch) -> 
         keys.append(devices.machine_key(torch.device("cpu")))
     assert keys[0] != keys[1]
     assert keys[0].startswith("AMD EPYC (family 25, model 17) [avx512_bf16 avx512f]")
+
+
+def test_benchmark_folders_keep_two_generations_of_one_model_name_apart(tmp_path) -> None:
+    """A bench folder (`devices.machine_slug`) names the CPU's generation: "AMD EPYC" with AVX-512 BF16 of
+    families 25 and 26 ran bf16 GEMMs at 417 and 888 GFLOP/s, and one folder for both would overwrite one
+    machine's report with the other's."""
+    import torch
+
+    from gns_bench.devices import machine_slug
+
+    slugs = []
+    for family, model in (("25", "17"), ("26", "2")):
+        info = tmp_path / f"cpuinfo-{family}"
+        info.write_text(f"processor\t: 0\nmodel name\t: AMD EPYC\ncpu family\t: {family}\nmodel\t\t: {model}\n"
+                        "flags\t\t: avx512f avx512_bf16\n")
+        slugs.append(machine_slug(torch.device("cpu"), info))
+    assert slugs == ["amd-epyc-family-25-model-17-avx512bf16", "amd-epyc-family-26-model-2-avx512bf16"]
+    info = tmp_path / "cpuinfo-intel"
+    info.write_text("processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Processor\ncpu family\t: 6\nmodel\t\t: 143\n"
+                    "flags\t\t: avx512f amx_tile amx_bf16\n")
+    assert machine_slug(torch.device("cpu"), info) == "intel-xeon-processor-family-6-model-143-amx"

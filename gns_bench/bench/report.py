@@ -180,10 +180,19 @@ def steadiness(results: dict[str, Any]) -> str:
             "numbers measured side by side (ours against the PyG baseline) less so.")
 
 
+def machine_name(env: dict[str, Any]) -> str:
+    """The machine a bench ran on, with the CPU's generation where it was recorded: one model name ("AMD
+    EPYC") covers generations whose bf16 rates differ 2x, and runs before the generation was recorded say so."""
+    if not env["device"].startswith("cpu"):
+        return env["hardware"]
+    generation = env.get("cpu")
+    return f"{env['hardware']} (CPU {generation or 'generation not recorded'})"
+
+
 def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:
     env = results["environment"]
     lines = ["# gns-bench benchmark", "",
-             f"Measured in one run on **{env['hardware']}** (device `{env['device']}`, torch {env['torch']}, "
+             f"Measured in one run on **{machine_name(env)}** (device `{env['device']}`, torch {env['torch']}, "
              f"{env['threads']} threads). Synthetic particle clouds at the paper's density (~15 neighbours "
              "within R); the paper's model (M = 10, latent 128, MLPs 2 x 128).", ""]
     if note := steadiness(results):
@@ -387,7 +396,7 @@ def write_bench_index(root: Path) -> Path:
     for folder, results in found:
         env = results["environment"]
         quick = " (quick sizes)" if results.get("settings", {}).get("repeats", 5) < 5 else ""
-        lines += [f"## {env['hardware']}{quick}", "",
+        lines += [f"## {machine_name(env)}{quick}", "",
                   f"[{folder}/]({folder}/README.md): device `{env['device']}`, torch {env['torch']}, "
                   f"{env['threads']} threads.", "", *targets_table(results), ""]
         if note := steadiness(results):

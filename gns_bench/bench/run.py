@@ -30,7 +30,7 @@ from gns_bench.bench.measure import (
 )
 from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.datasets import default_connectivity_radius
-from gns_bench.devices import resolve_device
+from gns_bench.devices import cpu_generation, resolve_device
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
@@ -221,6 +221,7 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     out_dir.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {
         "environment": {"hardware": tracking.hardware_description(str(device)), "device": str(device),
+                        "cpu": cpu_generation() if device.type == "cpu" else "",
                         "torch": torch.__version__, "threads": torch.get_num_threads()},
         "settings": asdict(settings),
     }

@@ -352,11 +352,11 @@ def inference_claim(reports_root: Path) -> list[str]:
 def bench_claims(reports_root: Path) -> list[str]:
     """gns-bench's own speed targets, from the committed benchmarks (`gns-bench bench`, one folder per machine):
     one row per target, each machine's measurement in it."""
-    from gns_bench.bench.report import machine_benchmarks, targets
+    from gns_bench.bench.report import machine_benchmarks, machine_name, targets
 
     by_target: dict[str, list[tuple[str, str, bool, str]]] = {}
     for folder, results in machine_benchmarks(reports_root / "bench"):
-        hardware = results.get("environment", {}).get("hardware", "?")
+        hardware = machine_name(results["environment"])
         for t in targets(results):
             by_target.setdefault(t["target"], []).append((hardware, t["measured"], t["met"], folder))
     if not by_target:
