@@ -230,7 +230,9 @@ def write_results(out: Path, name: str, text: str, rows: Any, **more: Any) -> No
 def allocated_machine(allocator: str) -> str:
     """Apply `train.allocator`'s setting `allocator` as training runs do, and name the machine with it (a
     table caption of the stand-alone benches: `python -m gns_bench.bench.skips`, `.one_step`)."""
-    from gns_bench.devices import apply_allocator
+    from gns_bench.devices import apply_allocator, cpu_generation
     from gns_bench.tracking import hardware_description
 
-    return f"{hardware_description('cpu')}; allocator: {apply_allocator(allocator)}"
+    generation = cpu_generation()
+    machine = hardware_description("cpu") + (f" (CPU {generation})" if generation else "")
+    return f"{machine}; allocator: {apply_allocator(allocator)}"

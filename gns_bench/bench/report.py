@@ -302,7 +302,8 @@ def machine_benchmarks(root: Path) -> list[tuple[str, dict[str, Any]]]:
 def _extra_checks(folder: Path) -> list[str]:
     """What a machine's folder holds beside the benchmark: the GPU check's CUDA tests (JUnit XML) and its runs-at-
     once timing (parallel.json, gns_bench/bench/device.py), the allocator rows (allocator.json,
-    gns_bench/bench/allocator.py) and the skip rows (skips.json, gns_bench/bench/skips.py), one line each."""
+    gns_bench/bench/allocator.py), the skip rows (skips.json, gns_bench/bench/skips.py) and the others' (one-step
+    windows, evaluation, profile, the side-by-side with geoelements/gns: peer_speed.json), one line each."""
     import json
     import xml.etree.ElementTree as ElementTree
 
@@ -346,6 +347,14 @@ def _extra_checks(folder: Path) -> list[str]:
         lines += _evaluation_lines(json.loads((folder / "evaluation.json").read_text()), folder.name)
     if (folder / "profile.json").is_file():
         lines.append(_profile_line(json.loads((folder / "profile.json").read_text()), folder.name))
+    if (folder / "peer_speed.json").is_file():
+        from gns_bench.bench.peer_speed import verdicts
+
+        held = "; ".join(f"{v['density']}, {v['precision']} {v['speed_up']:.2f}x ({v['variant']}; target "
+                         f"{v['target']:.0f}x{'' if v['met'] else ', missed'})"
+                         for v in verdicts(json.loads((folder / "peer_speed.json").read_text())))
+        lines.append(f"- A training iteration against geoelements/gns's fp32 one: {held} "
+                     f"([peer_speed.md]({folder.name}/peer_speed.md)).")
     return [*lines, ""] if lines else []
 
 
