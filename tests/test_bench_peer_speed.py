@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from gns_bench.bench import peer_speed
+from gns_bench.bench.measure import batch_of
 from gns_bench.config import ModelConfig
 
 TINY = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=2)
@@ -47,7 +48,7 @@ def test_targets_take_the_fastest_variant_of_each_precision() -> None:
 
 
 def test_our_iteration_trains_the_model_on_the_batch() -> None:
-    batch, scene = peer_speed.batch_of(peer_speed.Density("tiny", 2, 150, 15.0))
+    batch, scene = batch_of(2, 150, 15.0)
     assert batch.window.shape == (300, 6, 2) and batch.batch.tolist() == [0] * 150 + [1] * 150
     iteration = peer_speed.ours_iteration(TINY, batch, scene, "fp32", compiled=False, noise_std=0.0)
     losses = [iteration() for _ in range(30)]
@@ -61,7 +62,30 @@ def test_both_codes_compute_one_loss_on_the_same_weights_and_batch() -> None:
     from gns_bench.bench.peer import import_geo
 
     geo = import_geo(os.environ["GNS_BENCH_GEO"])
-    batch, scene = peer_speed.batch_of(peer_speed.Density("tiny", 2, 150, 15.0))
+    batch, scene = batch_of(2, 150, 15.0)
     ours = peer_speed.ours_iteration(TINY, batch, scene, "fp32", compiled=False, noise_std=0.0)()
     theirs = peer_speed.peer_iteration(geo, TINY, batch, scene, noise_std=0.0)()
     assert theirs == pytest.approx(ours, rel=1e-4)
+
+
+def test_the_bench_index_reads_the_side_by_side_and_the_graphed_rows(tmp_path) -> None:
+    """A machine's folder with `peer_speed.json` and `graphed.json` gets one index line each
+    (bench/report._extra_checks), with the targets' verdicts and the speed-ups over eager."""
+    import json
+
+    from gns_bench.bench.report import _extra_checks
+
+    folder = tmp_path / "machine"
+    folder.mkdir()
+    rows = [{"density": "paper density", "variant": v, "speed_up": x} for v, x in
+            (("geoelements/gns fp32", 1.0), ("ours fp32 eager", 3.5), ("ours bf16 compiled", 5.0))]
+    (folder / "peer_speed.json").write_text(json.dumps(rows))
+    (folder / "graphed.json").write_text(json.dumps(
+        [{"batch": 2, "precision": "fp32", "stepping": "eager", "seconds": 0.02, "graphs_per_second": 100.0},
+         {"batch": 2, "precision": "fp32", "stepping": "CUDA graph, padded", "seconds": 0.005,
+          "graphs_per_second": 400.0}]))
+    lines = _extra_checks(folder)
+    peer = next(line for line in lines if "geoelements/gns" in line)
+    assert "fp32 3.50x (ours fp32 eager; target 3x)" in peer
+    assert "bf16 5.00x (ours bf16 compiled; target 6x, missed)" in peer
+    assert any("batch 2 fp32 400 graphs/s (4.00x eager)" in line for line in lines)

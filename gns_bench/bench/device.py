@@ -2,7 +2,8 @@
 
     python -m gns_bench.bench.device        (or `nox -s device`, where nox is installed)
 
-the CUDA tests (tests/test_cuda.py, skipped on machines without a GPU), the full benchmark on the GPU, and 4
+the CUDA tests (tests/test_cuda.py, skipped on machines without a GPU), training throughput against batch size
+eager and replayed from CUDA graphs (gns_bench/bench/graphed.py), the full benchmark on the GPU, and 4
 runs of a sweep at once against one at a time, all into the GPU's own folder reports/bench/<machine>/ beside the
 CPUs', then the index rewritten. It installs nothing, since such machines may reach no package index. What it
 needs beyond the GPU's own CUDA torch and torch-geometric: mlflow (mlflow-skinny with SQLAlchemy and alembic is
@@ -37,6 +38,9 @@ def run_device_checks(root: Path = BENCH_ROOT, *, parallel: int = 4, steps: int 
              f"--junitxml={out / 'cuda-tests.xml'}"]
     if subprocess.run(tests, check=False).returncode != 0:
         raise SystemExit(f"gns_bench.bench.device: CUDA tests failed (see {out / 'cuda-tests.xml'})")
+    from gns_bench.bench import graphed  # eager against CUDA graphs over padded buckets, by batch size
+
+    graphed.main(["--out", str(out)])
     run_bench(out, BenchSettings(device="cuda"), log_to_mlflow=False)
     write_parallel_report(measure_parallel(parallel, steps=steps, device="cuda"), out)
     write_bench_index(root)

@@ -21,6 +21,7 @@ import torch
 
 from gns_bench.config import Config, ModelConfig
 from gns_bench.data.format import Metadata
+from gns_bench.data.windows import GraphBatch
 from gns_bench.model import features
 from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.precision import autocast, compiled_for_inference
@@ -113,6 +114,19 @@ def synthetic_scene(num_particles: int, dim: int = 2, radius: float = 0.015, nei
                     dim=dim, dt=1.0, vel_mean=[0.0] * dim, vel_std=[1e-3] * dim, acc_mean=[0.0] * dim,
                     acc_std=[1e-4] * dim, particle_types={"water": 5}, walls=True)
     return Scene(torch.tensor(window, dtype=torch.float32), torch.full((num_particles,), 5), meta)
+
+
+def batch_of(graphs: int, particles: int, neighbours: float = 15.0, seed: int = 0) -> tuple[GraphBatch, Scene]:
+    """`graphs` synthetic clouds of `particles` (`synthetic_scene`, seeds `seed`, `seed + 1`, ...) as one batch of
+    disjoint graphs, each particle's target its last velocity carried on plus a small random acceleration; and
+    the first cloud's scene (its metadata: bounds, statistics, R)."""
+    scenes = [synthetic_scene(particles, neighbours=neighbours, seed=seed + g) for g in range(graphs)]
+    window = torch.cat([s.window for s in scenes])
+    generator = torch.Generator().manual_seed(seed)
+    target = 2 * window[:, -1] - window[:, -2] + 1e-4 * torch.randn(window[:, -1].shape, generator=generator)
+    types = torch.cat([s.particle_type for s in scenes])
+    graph = torch.repeat_interleave(torch.arange(graphs), particles)
+    return GraphBatch(window, types, graph, None, target), scenes[0]
 
 
 @dataclass

@@ -30,7 +30,7 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, build_model, synthetic_scene
+from gns_bench.bench.measure import Scene, batch_of, build_model
 from gns_bench.config import ModelConfig
 from gns_bench.data.windows import GraphBatch
 from gns_bench.model.neighbours import radius_graph
@@ -52,21 +52,6 @@ class Density:
 
 
 DENSITIES = (Density("paper density", 1, 2000, 15.0), Density("real training batch", 2, 1500, 28.0))
-
-
-def batch_of(density: Density, seed: int = 0) -> tuple[GraphBatch, Scene]:
-    """`density.graphs` synthetic clouds as one batch of disjoint graphs, each with a next position (its last
-    velocity carried on, plus a small random acceleration) as the target; and the first cloud's scene (its
-    metadata: bounds, statistics, R)."""
-    scenes = [synthetic_scene(density.particles, neighbours=density.neighbours, seed=seed + g)
-              for g in range(density.graphs)]
-    window = torch.cat([s.window for s in scenes])
-    generator = torch.Generator().manual_seed(seed)
-    velocity = window[:, -1] - window[:, -2]
-    target = window[:, -1] + velocity + 1e-4 * torch.randn(window[:, -1].shape, generator=generator)
-    types = torch.cat([s.particle_type for s in scenes])
-    graph = torch.repeat_interleave(torch.arange(density.graphs), density.particles)
-    return GraphBatch(window, types, graph, None, target), scenes[0]
 
 
 def ours_iteration(model: ModelConfig, batch: GraphBatch, scene: Scene, precision: str, compiled: bool,
@@ -154,7 +139,7 @@ def measure(geo_source: str | Path, repeats: int = 5, model: ModelConfig | None 
     model = model or ModelConfig()
     rows = []
     for density in densities:
-        batch, scene = batch_of(density)
+        batch, scene = batch_of(density.graphs, density.particles, density.neighbours)
         variants = {"geoelements/gns fp32": peer_iteration(geo, model, copy.deepcopy(batch), scene)}
         variants |= {name: ours_iteration(model, batch, scene, precision, compiled)
                      for name, (precision, compiled) in VARIANTS.items()}

@@ -347,6 +347,14 @@ def _extra_checks(folder: Path) -> list[str]:
         lines += _evaluation_lines(json.loads((folder / "evaluation.json").read_text()), folder.name)
     if (folder / "profile.json").is_file():
         lines.append(_profile_line(json.loads((folder / "profile.json").read_text()), folder.name))
+    if (folder / "graphed.json").is_file():
+        rows = json.loads((folder / "graphed.json").read_text())
+        eager = {(r["batch"], r["precision"]): r["seconds"] for r in rows if r["stepping"] == "eager"}
+        cells = "; ".join(f"batch {r['batch']} {r['precision']} {r['graphs_per_second']:.0f} graphs/s "
+                          f"({eager[(r['batch'], r['precision'])] / r['seconds']:.2f}x eager)"
+                          for r in rows if r["stepping"] != "eager")
+        lines.append(f"- Training steps replayed from CUDA graphs over padded buckets: {cells} "
+                     f"([graphed.md]({folder.name}/graphed.md)).")
     if (folder / "peer_speed.json").is_file():
         from gns_bench.bench.peer_speed import verdicts
 
