@@ -75,8 +75,8 @@ def cpu_features() -> list[str]:
 def machine_slug(device: torch.device, cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     """A folder name for what a benchmark ran on: the GPU's name, or the CPU model with its generation and its
     bf16 matrix units ("amd-epyc-family-26-model-2-avx512bf16"), which decide what is fastest on it. The
-    generation keeps two machines sold under one model name apart: "AMD EPYC" with AVX-512 BF16 names a Zen 4
-    part whose bf16 GEMM ran 417 GFLOP/s on 2 threads and one that ran 888 (reports/bench)."""
+    generation keeps two machines sold under one model name apart: "AMD EPYC" with AVX-512 BF16 names a family-25
+    part whose bf16 GEMM ran 417 GFLOP/s on 2 threads and a family-26 one that ran 964 (reports/bench)."""
     import re
 
     if device.type == "cuda":

@@ -67,7 +67,8 @@ def ours_iteration(model: ModelConfig, batch: GraphBatch, scene: Scene, precisio
 
     def iteration() -> float:
         noise = random_walk_position_noise(tuple(batch.window.shape), noise_std, generator, mask=moving)
-        loss = training_loss(simulator, batch, noise, 1.0, precision=precision, moving_only=True)
+        # the target shifted by the last position's noise (correction 0), as the peer's `predict_accelerations`
+        loss = training_loss(simulator, batch, noise, 0.0, precision=precision, moving_only=True)
         optimiser.zero_grad(set_to_none=True)
         loss.backward()
         optimiser.step()
