@@ -20,7 +20,8 @@ SETTINGS = ("system", "keep")
 WARMUP = 5
 
 
-def allocator_point(setting: str, particles: int, neighbours: float, precision: str, steps: int) -> dict[str, Any]:
+def allocator_point(setting: str, particles: int, neighbours: float, precision: str, steps: int,
+                    warmup: int = WARMUP) -> dict[str, Any]:
     """`steps` training steps with the allocator as `setting` says (run in a fresh process: the setting holds for
     the process's life)."""
     import resource
@@ -38,7 +39,7 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
     model = build_model(ModelConfig(), scene, torch.device("cpu"))
     edges = model.build_graph(scene.window[:, -1])
     optimiser = adam(model.parameters(), 1e-4)
-    for _ in range(WARMUP):  # warm-up: the heap grows to the step's size (about 4 steps with memory kept)
+    for _ in range(warmup):  # warm-up: the heap grows to the step's size (about 4 steps with memory kept)
         synthetic_train_step(model, optimiser, scene.window, scene.particle_type, edges, precision)
     before, started = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     for _ in range(steps):
@@ -52,14 +53,14 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
 
 
 def measure_allocator(particles: int = 3000, neighbours: float = 28.0, precisions: tuple[str, ...] = ("fp32", "bf16"),
-                      steps: int = 10) -> list[dict[str, Any]]:
+                      steps: int = 10, warmup: int = WARMUP) -> list[dict[str, Any]]:
     """Both settings, each precision, one fresh process each (GLIBC_TUNABLES cleared so "system" is glibc's own)."""
     rows = []
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"} | {"PYTHONWARNINGS": "ignore"}
     for precision in precisions:
         for setting in SETTINGS:
             code = ("import json; from gns_bench.bench.allocator import allocator_point; print(json.dumps("
-                    f"allocator_point({setting!r}, {particles}, {neighbours}, {precision!r}, {steps})))")
+                    f"allocator_point({setting!r}, {particles}, {neighbours}, {precision!r}, {steps}, {warmup})))")
             done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
             rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
     return rows
