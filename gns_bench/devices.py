@@ -32,11 +32,11 @@ def _first_processor(cpuinfo: str | Path = "/proc/cpuinfo") -> dict[str, str]:
     return fields
 
 
-def cpu_model() -> str:
+def cpu_model(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
     """The CPU's model name (/proc/cpuinfo), else what the platform says."""
     import platform
 
-    return _first_processor().get("model name") or platform.processor() or platform.machine()
+    return _first_processor(cpuinfo).get("model name") or platform.processor() or platform.machine()
 
 
 def cpu_identity(cpuinfo: str | Path = "/proc/cpuinfo") -> str:
@@ -65,10 +65,10 @@ def _generation(fields: dict[str, str]) -> str:
                      if key in fields)
 
 
-def cpu_features() -> list[str]:
+def cpu_features(cpuinfo: str | Path = "/proc/cpuinfo") -> list[str]:
     """The CPU features that decide which training settings are fastest: the bf16 matrix units (AMX on Intel,
     AVX-512 BF16 on AMD and Intel) and AVX-512 itself. A model name such as "AMD EPYC" does not tell them."""
-    flags = set(_first_processor().get("flags", "").split())
+    flags = set(_first_processor(cpuinfo).get("flags", "").split())
     return [flag for flag in ("amx_bf16", "amx_tile", "avx512_bf16", "avx512f") if flag in flags]
 
 
@@ -82,11 +82,9 @@ def machine_slug(device: torch.device, cpuinfo: str | Path = "/proc/cpuinfo") ->
     if device.type == "cuda":
         name = f"cuda {torch.cuda.get_device_name(device)}"
     else:
-        fields = _first_processor(cpuinfo)
-        flags = set(fields.get("flags", "").split())
-        unit = "amx" if "amx_tile" in flags else "avx512bf16" if "avx512_bf16" in flags else ""
-        model = fields.get("model name") or cpu_model()
-        name = f"{model} {_generation(fields)} {unit}"
+        features = cpu_features(cpuinfo)
+        unit = "amx" if "amx_tile" in features else "avx512bf16" if "avx512_bf16" in features else ""
+        name = f"{cpu_model(cpuinfo)} {cpu_generation(cpuinfo)} {unit}"
     name = re.sub(r"\((r|tm)\)", "", name.lower())
     return re.sub(r"[^a-z0-9]+", "-", name).strip("-")
 

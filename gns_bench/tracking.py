@@ -73,6 +73,15 @@ def hardware_description(device: str) -> str:
     return f"{cpu_model()}, {threads} thread{'' if threads == 1 else 's'}"
 
 
+def with_generation(hardware: str, device: str, generation: str | None) -> str:
+    """`hardware` (as `hardware_description` names it) with the CPU's generation beside it on a CPU: one model
+    name ("AMD EPYC") covers generations whose bf16 rates differ 2x; a record from before the generation was
+    kept says so."""
+    if not device.startswith("cpu"):
+        return hardware
+    return f"{hardware} (CPU {generation or 'generation not recorded'})"
+
+
 def environment_tags(device: str) -> dict[str, str]:
     """The tags every run carries about where it ran; `cpu` tells apart CPU generations that share a model
     name (devices.cpu_identity)."""

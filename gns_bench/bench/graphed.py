@@ -21,15 +21,13 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, batch_of, build_model
+from gns_bench.bench.measure import NOISE_STD, Scene, batch_of, build_model
 from gns_bench.config import ModelConfig
 from gns_bench.data.windows import GraphBatch
 from gns_bench.model.noise import random_walk_position_noise
 from gns_bench.train.loop import adam
 from gns_bench.train.losses import training_loss
 from gns_bench.train.padded import GraphedSteps, capturable_adam, pad_batch
-
-NOISE_STD = 3e-4
 
 
 def steppers(batch: GraphBatch, scene: Scene, model: ModelConfig, precision: str
@@ -38,11 +36,9 @@ def steppers(batch: GraphBatch, scene: Scene, model: ModelConfig, precision: str
     initial weights, each drawing its own noise every step; both return the step's loss."""
     device = batch.window.device
     generator = torch.Generator().manual_seed(0)
-    moving = torch.ones(batch.window.shape[0], dtype=torch.bool)
 
-    def noise() -> torch.Tensor:
-        return random_walk_position_noise(tuple(batch.window.shape), NOISE_STD, generator, mask=moving,
-                                          device=device)
+    def noise() -> torch.Tensor:  # every synthetic particle moves: noise on every row
+        return random_walk_position_noise(tuple(batch.window.shape), NOISE_STD, generator, device=device)
 
     eager = build_model(model, scene, device)
     eager_adam = adam(eager.parameters(), 1e-4)

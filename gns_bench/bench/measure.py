@@ -116,6 +116,9 @@ def synthetic_scene(num_particles: int, dim: int = 2, radius: float = 0.015, nei
     return Scene(torch.tensor(window, dtype=torch.float32), torch.full((num_particles,), 5), meta)
 
 
+NOISE_STD = 3e-4  # sigma_v the synthetic batches are trained with: the paper's WATERDROP noise (App. B.1)
+
+
 def batch_of(graphs: int, particles: int, neighbours: float = 15.0, seed: int = 0) -> tuple[GraphBatch, Scene]:
     """`graphs` synthetic clouds of `particles` (`synthetic_scene`, seeds `seed`, `seed + 1`, ...) as one batch of
     disjoint graphs, each particle's target its last velocity carried on plus a small random acceleration; and
@@ -245,8 +248,7 @@ def allocated_machine(allocator: str) -> str:
     """Apply `train.allocator`'s setting `allocator` as training runs do, and name the machine with it (a
     table caption of the stand-alone benches: `python -m gns_bench.bench.skips`, `.one_step`)."""
     from gns_bench.devices import apply_allocator, cpu_generation
-    from gns_bench.tracking import hardware_description
+    from gns_bench.tracking import hardware_description, with_generation
 
-    generation = cpu_generation()
-    machine = hardware_description("cpu") + (f" (CPU {generation})" if generation else "")
+    machine = with_generation(hardware_description("cpu"), "cpu", cpu_generation())
     return f"{machine}; allocator: {apply_allocator(allocator)}"

@@ -21,6 +21,7 @@ repeats of that repeat's ratio, so a host whose speed drifts during the run move
 from __future__ import annotations
 
 import copy
+import importlib
 import statistics
 import time
 from collections.abc import Callable
@@ -30,7 +31,7 @@ from typing import Any
 
 import torch
 
-from gns_bench.bench.measure import Scene, batch_of, build_model
+from gns_bench.bench.measure import NOISE_STD, Scene, batch_of, build_model
 from gns_bench.config import ModelConfig
 from gns_bench.data.windows import GraphBatch
 from gns_bench.model.neighbours import radius_graph
@@ -38,7 +39,6 @@ from gns_bench.model.noise import random_walk_position_noise
 from gns_bench.train.loop import adam
 from gns_bench.train.losses import training_loss
 
-NOISE_STD = 3e-4  # the paper's WATERDROP noise (App. B.1)
 # The targets this comparison is held to: a whole training iteration against the peer's fp32 one.
 TARGETS = {"fp32": 3.0, "bf16": 6.0}
 
@@ -63,10 +63,9 @@ def ours_iteration(model: ModelConfig, batch: GraphBatch, scene: Scene, precisio
         simulator.network.compile(dynamic=True)
     optimiser = adam(simulator.parameters(), 1e-4)
     generator = torch.Generator().manual_seed(seed)
-    moving = torch.ones(batch.window.shape[0], dtype=torch.bool)
 
-    def iteration() -> float:
-        noise = random_walk_position_noise(tuple(batch.window.shape), noise_std, generator, mask=moving)
+    def iteration() -> float:  # every synthetic particle moves: noise on every row
+        noise = random_walk_position_noise(tuple(batch.window.shape), noise_std, generator)
         # the target shifted by the last position's noise (correction 0), as the peer's `predict_accelerations`
         loss = training_loss(simulator, batch, noise, 0.0, precision=precision, moving_only=True)
         optimiser.zero_grad(set_to_none=True)
@@ -85,7 +84,7 @@ def peer_iteration(geo, model: ModelConfig, batch: GraphBatch, scene: Scene, see
     are widened by the paper's sigma_v either way, as gns-bench's model's are."""
     from gns_bench.bench.peer import geo_simulator
 
-    noise_utils = __import__("gns.noise_utils", fromlist=["get_random_walk_noise_for_position_sequence"])
+    noise_utils = importlib.import_module("gns.noise_utils")  # on the path since `import_geo`
     ours = build_model(model, scene, torch.device("cpu"), seed)
     peer = geo_simulator(geo, ours, scene.metadata, NOISE_STD)  # statistics widened by sigma_v as ours are
     optimiser = torch.optim.Adam(peer.parameters(), lr=1e-4)

@@ -181,12 +181,10 @@ def steadiness(results: dict[str, Any]) -> str:
 
 
 def machine_name(env: dict[str, Any]) -> str:
-    """The machine a bench ran on, with the CPU's generation where it was recorded: one model name ("AMD
-    EPYC") covers generations whose bf16 rates differ 2x, and runs before the generation was recorded say so."""
-    if not env["device"].startswith("cpu"):
-        return env["hardware"]
-    generation = env.get("cpu")
-    return f"{env['hardware']} (CPU {generation or 'generation not recorded'})"
+    """The machine a bench ran on (its `environment`), with the CPU's generation (`tracking.with_generation`)."""
+    from gns_bench.tracking import with_generation
+
+    return with_generation(env["hardware"], env["device"], env.get("cpu"))
 
 
 def write_bench_report(results: dict[str, Any], out_dir: Path) -> list[Path]:

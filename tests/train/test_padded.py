@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from gns_bench.config import ConfigError, load_config
+from gns_bench.config import load_config
 from gns_bench.data.format import load_split, read_metadata
 from gns_bench.data.windows import WindowSampler
 from gns_bench.train.checkpoints import build_simulator
@@ -69,10 +69,7 @@ def test_a_batch_that_does_not_fit_its_padding_and_the_global_latent_are_refused
     simulator, (batch, noise, _) = _simulator_and_step(tiny_dataset)
     with pytest.raises(ValueError, match="do not fit"):
         pad_batch(simulator, batch, noise, 0.0, nodes=batch.window.shape[0])  # no pad row left
-    try:
-        simulator, (batch, noise, _) = _simulator_and_step(tiny_dataset, ["model.global_latent=true"])
-    except ConfigError:
-        pytest.skip("this config refuses the global latent on its own")
+    simulator, (batch, noise, _) = _simulator_and_step(tiny_dataset, ["model.global_latent=true"])
     with pytest.raises(ValueError, match="global_latent"):
         pad_batch(simulator, batch, noise, 0.0)
 
