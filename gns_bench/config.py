@@ -107,7 +107,9 @@ class TrainConfig:
     # Pushforward (Brandstetter et al. 2022, as LagrangeBench trains): from step `pushforward_start`, a share
     # `pushforward_share` of the steps first rolls the model forward 1..`pushforward_steps` steps (drawn
     # uniformly) without gradient from the noisy window, then trains the next step from the window its own
-    # predictions made, against the true position: the model learns to correct its own drift. 0 steps: off.
+    # predictions made, its target corrected for the drift as `position_correction` corrects for the input noise
+    # (the default: the true next velocity from where the rollout stands; `train/losses.pushed_forward`). 0 steps:
+    # off.
     pushforward_steps: int = 0
     pushforward_start: int = 0
     pushforward_share: float = 0.5

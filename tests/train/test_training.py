@@ -261,7 +261,9 @@ def test_the_anneal_falls_linearly_over_the_last_steps_from_where_the_schedule_s
 def test_pushforward_trains_from_the_models_own_window_against_the_truth(tiny_dataset: Path) -> None:
     """`train.pushforward_*`: off, or before its start, no step unrolls; on, a share of steps unrolls 1..U steps
     (the same for a resumed run); the loss of an unrolled step is the one-step loss on the window the model's own
-    predictions made, its target the true position after it."""
+    predictions made, its target corrected for the window's drift from the truth as the noise correction is:
+    the true next velocity from where the window stands (`train.position_correction` 0, the paper's default),
+    or the true next position (1)."""
     import torch
 
     from gns_bench.data.format import read_metadata
@@ -296,10 +298,13 @@ def test_pushforward_trains_from_the_models_own_window_against_the_truth(tiny_da
             nxt = simulator.predict_next_position(window, batch.particle_type, batch.batch)
             nxt[kinematic] = batch.future[kinematic, k]
             window = torch.cat([window[:, 1:], nxt[:, None]], dim=1)
-        target = simulator.normalise_acceleration(acceleration_from_next_position(window, batch.future[:, 2]))
-        error = (simulator(window, batch.particle_type, batch.batch) - target).square().sum(-1)
-        expected = error[~kinematic].sum() / moving
-        got = training_loss(simulator, batch, noise, 0.0, num_moving=moving, unroll=2)
+        velocity_target = window[:, -1] + batch.future[:, 2] - batch.future[:, 1]  # the true next velocity
+        prediction = simulator(window, batch.particle_type, batch.batch)
+        for correction, target_next in ((0.0, velocity_target), (1.0, batch.future[:, 2])):
+            target = simulator.normalise_acceleration(acceleration_from_next_position(window, target_next))
+            error = (prediction - target).square().sum(-1)
+            expected = error[~kinematic].sum() / moving
+            got = training_loss(simulator, batch, noise, correction, num_moving=moving, unroll=2)
+            assert float(got) == pytest.approx(float(expected), rel=1e-5), correction
         plain = training_loss(simulator, batch, noise, 0.0, num_moving=moving)
-    assert float(got) == pytest.approx(float(expected), rel=1e-5)
     assert float(got) != pytest.approx(float(plain), rel=1e-3)  # the unrolled step trains on something else
