@@ -12,15 +12,29 @@ that fails is reported and the campaign goes on; Ctrl-C or SIGTERM stops it, and
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
+from gns_bench import tracking
 from gns_bench.report import write_all_reports, write_overviews, write_report
 from gns_bench.sweep.campaigns import Campaign
-from gns_bench.sweep.runner import RunOutcome, format_plan, prepare, run_sweep
-from gns_bench.sweep.spec import SWEEPS_DIR, SweepSpec, load_sweep
+from gns_bench.sweep.launchers import Lanes, outcome_of
+from gns_bench.sweep.runner import (
+    PROGRESS_LOG,
+    RunOutcome,
+    execute_run,
+    format_plan,
+    prepare,
+    run_dir,
+    run_sweep,
+    start_sweep,
+    stderr_into,
+)
+from gns_bench.sweep.spec import SWEEPS_DIR, PlannedRun, SweepSpec, load_sweep
 from gns_bench.sweep.summaries import read_run_summary, summary_path
 
 
@@ -70,14 +84,42 @@ def _report_partway(path: Path, tier: str, reports_root: Path, echo: Callable[[s
         echo(f"  report so far failed ({type(exc).__name__}: {exc}); it is written when {path.stem} is done")
 
 
+def _write_sweep_reports(path: Path, sweep: SweepSpec, outcomes: list[RunOutcome], tier: str, reports_root: Path,
+                         echo: Callable[[str], None]) -> None:
+    """A sweep is done: write its report and the overviews, unless nothing ran or was recorded, its summary
+    holds every run not waiting for another kind of machine, and its report was written after the summary last
+    changed: then the report and the overviews stand as written, and the campaign's final rewrite covers them.
+    Rewriting them took about 20 s a sweep (MLflow reads, PNGs): a resumed campaign spent 4.5 min skipping the
+    13 sweeps it had done (2-core AMD EPYC, CPU family 25, model 17)."""
+    summary = summary_path(reports_root, sweep.name, tier)
+    held = read_run_summary(summary)
+    readme = summary.parent / "README.md"
+    if (all(o.status == "WAITING" or (o.status == "SKIPPED" and o.name in held) for o in outcomes)
+            and summary.is_file()
+            and readme.is_file() and readme.stat().st_mtime >= summary.stat().st_mtime):
+        echo(f"  reports: unchanged, nothing new in {sweep.name}")
+        return
+    for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:
+        echo(f"  report: {written}")
+
+
 def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path,
                  reports_root: Path = Path("reports"), launcher: str = "local", cluster: str | None = None,
                  progress: bool = True, echo: Callable[[str], None] = print,
                  sweeps_dir: Path = SWEEPS_DIR, parallel: int = 1, any_kind: bool = False) -> list[SweepResult]:
     """Run every sweep of the campaign at `tier` in order, writing each one's report and the overviews when it
-    is done, then every report (`write_all_reports`). `parallel`: runs at once
-    within each sweep (`run_sweep`). Runs held to another kind of machine wait for a session on one
-    (`sweep/cpu_kinds.py`) while the campaign goes on with the rest, unless `any_kind`."""
+    is done, then every report (`write_all_reports`). `parallel` > 1 (local launcher): that many lanes, each a
+    process on its own share of the cores, kept busy across sweeps (`_run_in_lanes`): a lane that frees takes
+    the next run in the campaign's order, or makes the next sweep's datasets. Runs held to another kind of
+    machine wait for a session on one (`sweep/cpu_kinds.py`) while the campaign goes on with the rest, unless
+    `any_kind`."""
+    if launcher == "local" and parallel > 1:
+        results = _run_in_lanes(campaign, tier, data_root=data_root, runs_root=runs_root, reports_root=reports_root,
+                                echo=echo, sweeps_dir=sweeps_dir, parallel=parallel, any_kind=any_kind,
+                                progress=progress)
+        for written in write_all_reports(tier, reports_root, sweeps_dir):
+            echo(f"  report: {written}")
+        return results
     results = []
     for index, path in enumerate(campaign.sweeps, 1):
         sweep: SweepSpec = load_sweep(path, sweeps_dir)
@@ -94,21 +136,137 @@ def run_campaign(campaign: Campaign, tier: str, *, data_root: Path, runs_root: P
             results.append(SweepResult(sweep.name, [], f"{type(exc).__name__}: {exc}"))
             continue
         results.append(SweepResult(sweep.name, outcomes))
-        summary = summary_path(reports_root, sweep.name, tier)
-        held = read_run_summary(summary)
-        readme = summary.parent / "README.md"
-        if (all(o.status == "WAITING" or (o.status == "SKIPPED" and o.name in held) for o in outcomes)
-                and summary.is_file()
-                and readme.is_file() and readme.stat().st_mtime >= summary.stat().st_mtime):
-            # nothing ran or was recorded, its summary holds every run not waiting for another kind of machine,
-            # and its report was written after the summary last changed: the report and the overviews stand as
-            # written, and the final rewrite below covers them. Rewriting them took about 20 s a sweep (MLflow
-            # reads, PNGs): a resumed campaign spent 4.5 min skipping the 13 sweeps it had done (2-core AMD EPYC,
-            # CPU family 25, model 17).
-            echo(f"  reports: unchanged, nothing new in {sweep.name}")
-            continue
-        for written in [write_report(path, tier, reports_root), *write_overviews(tier, reports_root)]:
-            echo(f"  report: {written}")
+        _write_sweep_reports(path, sweep, outcomes, tier, reports_root, echo)
     for written in write_all_reports(tier, reports_root, sweeps_dir):
         echo(f"  report: {written}")
     return results
+
+
+@dataclass
+class _Started:
+    """A sweep of a campaign in lanes whose runs are being trained."""
+
+    index: int
+    path: Path
+    sweep: SweepSpec
+    outcomes: list[RunOutcome]
+    keep: Callable[[RunOutcome | str], None]
+    left: int  # runs queued or in a lane
+
+
+def make_datasets(path: Path, tier: str, data_root: Path, sweeps_dir: Path, reports_root: Path,
+                  tracking_uri: str | None, log: Path) -> str:
+    """A lane's job: generate the datasets a campaign's sweep lacks (`prepare`), its progress into `log`.
+    Returns the sweep's name."""
+    if tracking_uri:
+        tracking.use_tracking_uri(tracking_uri)
+    sweep = load_sweep(path, sweeps_dir)
+    with stderr_into(log):
+        prepare(sweep, tier, data_root, generate=True, progress=True, reports_root=reports_root)
+    return sweep.name
+
+
+def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path, reports_root: Path,
+                  echo: Callable[[str], None], sweeps_dir: Path, parallel: int, any_kind: bool,
+                  progress: bool) -> list[SweepResult]:
+    """The campaign's runs through `parallel` lanes (`Lanes`), in the campaign's order across sweeps, so that
+    no lane idles while any sweep has a run to train: a free lane takes the next queued run; with none queued,
+    the next sweep is started (its finished, shared and waiting runs recorded here, a stress sweep's tests of
+    checkpoints another sweep trained run here too, its runs to train queued)
+    or, where it lacks a dataset, the lane makes it (one lane at a time: a sweep lacking data while one is made
+    waits for it, and the sweeps after it start meanwhile). Each sweep's report is written as its runs finish
+    (`_report_partway`) and when its last one has (`_write_sweep_reports`). A run's progress goes to
+    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder."""
+    uri = tracking.tracking_uri()
+    job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(), tracking_uri=uri,
+                  progress=False, progress_log=progress)
+    results: dict[int, SweepResult] = {}
+    upcoming = list(enumerate(campaign.sweeps, 1))
+    generated: set[int] = set()  # sweeps whose datasets a lane has made (or failed to)
+    deferred: list[tuple[int, Path]] = []  # sweeps lacking a dataset while a lane makes another's
+    queue: list[tuple[_Started, PlannedRun]] = []
+    flying: dict[Future, tuple[_Started, PlannedRun] | tuple[int, Path]] = {}
+    started_at = time.perf_counter()
+
+    def finish(started: _Started) -> None:
+        results[started.index] = SweepResult(started.sweep.name, started.outcomes)
+        try:
+            _write_sweep_reports(started.path, started.sweep, started.outcomes, tier, reports_root, echo)
+        except Exception as exc:  # noqa: BLE001 - a report that fails must not stop the lanes
+            echo(f"  reports of {started.sweep.name} failed ({type(exc).__name__}: {exc}); written at the end")
+
+    def start(index: int, path: Path, lanes: Lanes) -> None:
+        try:
+            sweep = load_sweep(path, sweeps_dir)
+            echo(f"== campaign {campaign.name} ({tier}), sweep {index}/{len(campaign.sweeps)}: {sweep.name}")
+            _, status, _ = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root,
+                                   runs_root=runs_root, any_kind=any_kind)
+            if index not in generated and any(s == "dataset missing" for s in status.values()):
+                if any(isinstance(what[0], int) for what in flying.values()):
+                    deferred.append((index, path))  # one lane makes datasets at a time: two sweeps may need one
+                    echo("  waits for the datasets a lane is making")
+                    return
+                generated.add(index)
+                log = runs_root / sweep.name / tier / "datasets.log"
+                echo(f"  making its datasets in a lane (progress: {log})")
+                flying[lanes.submit(make_datasets, path, tier, data_root, sweeps_dir, reports_root, uri,
+                                    log)] = (index, path)
+                return
+            begun = start_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, progress=progress,
+                                reports_root=reports_root, echo=echo, any_kind=any_kind, generate=False)
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # noqa: BLE001 - one sweep that cannot start is reported; the rest go on
+            echo(f"  sweep {path.stem} failed: {type(exc).__name__}: {exc}")
+            results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
+            return
+        started = _Started(index, path, sweep, begun.outcomes, begun.keep, len(begun.pending))
+        queue.extend((started, run) for run in begun.pending)
+        if not begun.pending:
+            finish(started)
+
+    def ended(future: Future) -> None:
+        what = flying.pop(future)
+        if isinstance(what[0], int):  # datasets made (or not): start the sweep again, now with its data
+            index, path = what
+            again = [*deferred]  # the sweeps that waited for it start first, in the campaign's order
+            deferred.clear()
+            try:
+                future.result()
+                again.append((index, path))
+            except Exception as exc:  # noqa: BLE001 - a dataset that would not generate fails its sweep
+                echo(f"  sweep {path.stem} failed: its datasets: {type(exc).__name__}: {exc}")
+                results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
+            upcoming[:0] = sorted(again)
+            return
+        started, run = what
+        result = outcome_of(future, run.name)
+        outcome = result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
+        started.outcomes.append(outcome)
+        started.keep(outcome)
+        started.left -= 1
+        echo(f"  {run.name} ({started.sweep.name}): {outcome.status} after "
+             f"{(time.perf_counter() - started_at) / 60:.1f} min of the campaign"
+             + (f": {outcome.error}" if outcome.error else "")
+             + f" ({len(flying)} running, {len(queue)} queued, {len(upcoming)} sweeps to start)")
+        if started.left:
+            _report_partway(started.path, tier, reports_root, echo, outcome, started.left)
+        else:
+            finish(started)
+
+    with Lanes(parallel, echo) as lanes:
+        while True:
+            while len(flying) < parallel and (queue or upcoming):
+                if queue:
+                    started, run = queue.pop(0)
+                    echo(f"  {run.name} ({started.sweep.name}) into a lane; progress: "
+                         f"{run_dir(runs_root, run) / PROGRESS_LOG}")
+                    flying[lanes.submit(job, run)] = (started, run)
+                else:
+                    start(*upcoming.pop(0), lanes)
+            if not flying:
+                break
+            done, _ = wait(flying, return_when=FIRST_COMPLETED)
+            for future in done:
+                ended(future)
+    return [results[index] for index in sorted(results)]

@@ -195,7 +195,8 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
                    help="local: one run after another here; submitit: a job array (SLURM, else local processes)")
     p.add_argument("--parallel", type=int, default=1, metavar="N",
                    help="local launcher: N runs at once, each in its own process on its own share of the cores "
-                        "(on a GPU they share the device); default 1")
+                        "(on a GPU they share the device), its progress in progress.log in its run directory; "
+                        "default 1")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"],
                    help="submitit executor (default: SLURM when available, else local)")
     p.add_argument("--no-share", action="store_true",
@@ -272,8 +273,10 @@ def _add_campaign(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--launcher", default="local", choices=["local", "submitit"],
                    help="local: one run after another here; submitit: job arrays (SLURM, else local processes)")
     p.add_argument("--parallel", type=int, default=1, metavar="N",
-                   help="local launcher: N runs at once, each in its own process on its own share of the cores "
-                        "(on a GPU they share the device); default 1")
+                   help="local launcher: N lanes, each a process on its own share of the cores (on a GPU they "
+                        "share the device), kept busy across sweeps: a free lane takes the next run in the "
+                        "campaign's order or makes the next sweep's datasets; each run's progress goes to "
+                        "progress.log in its run directory; default 1")
     p.add_argument("--cluster", default=None, choices=["local", "slurm", "debug"], help="submitit executor")
     p.add_argument("--any-cpu-kind", action="store_true",
                    help="train here the runs held to another kind of machine (by default an ablation's or a "

@@ -165,6 +165,33 @@ def test_a_timed_plan_measures_each_cost_once_and_counts_a_shared_point_once(swe
                          "measured here")
 
 
+def test_a_campaign_in_lanes_keeps_both_lanes_busy_across_sweeps(sweeps: Path, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two sweeps of one run each, two lanes: a lane makes the shared dataset first (the other sweep waits for
+    it rather than making it a second time), then the second sweep's run trains beside the first's, where a
+    campaign run sweep by sweep leaves one lane idle; each run's progress lands in its run directory, each
+    sweep's report is written."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'lanes.db'}")
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["domains/one.toml", "domains/two.toml"]\n')
+    campaign = load_campaign(path, sweeps)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
+    said: list[str] = []
+    results = run_campaign(campaign, "smoke", echo=said.append, sweeps_dir=sweeps, parallel=2, **roots)
+    assert [r.sweep for r in results] == ["domain-one", "domain-two"]
+    assert [o.status for r in results for o in r.outcomes] == ["FINISHED", "FINISHED"], said
+    assert sum("making its datasets in a lane" in line for line in said) == 1, said
+    assert "  waits for the datasets a lane is making" in said
+    # the second sweep's run went into a lane while the first's was still in its own
+    into = [i for i, line in enumerate(said) if "(domain-two) into a lane" in line]
+    ended = [i for i, line in enumerate(said) if "(domain-one): FINISHED" in line]
+    assert len(into) == len(ended) == 1 and into[0] < ended[0], said
+    for r in results:
+        log = tmp_path / "runs" / r.sweep / "smoke" / r.outcomes[0].name / "progress.log"
+        assert "train" in log.read_text() and "step/s" in log.read_text()
+        assert (tmp_path / "reports" / r.sweep / "smoke" / "README.md").is_file()
+
+
 def test_a_sweep_s_finished_runs_reach_its_run_summary_before_the_sweep_ends(sweeps: Path, tmp_path: Path,
                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """A campaign stopped in the middle of a sweep, on a machine that then loses its MLflow store and

@@ -1,18 +1,20 @@
-"""Dispatch sweep runs: several at once on this machine (`run_parallel`, each in its own process on its own
-share of the cores), or through submitit (SLURM job arrays on a cluster, its local executor on one machine).
+"""Dispatch sweep runs: several at once on this machine (`Lanes`: worker processes each on its own share of
+the cores; `run_parallel` puts a sweep's runs through them), or through submitit (SLURM job arrays on a
+cluster, its local executor on one machine).
 
-Datasets are generated before dispatch (once, by the submitting process); each job calls the run
-function it is given (the runner's `execute_run`, bound to the data, runs and tracking locations) on one
-planned run.
+A sweep's datasets are generated before dispatch (once, by the submitting process; a campaign in lanes makes
+them in a lane, `campaign.py`); each job calls the run function it is given (the runner's `execute_run`, bound
+to the data, runs and tracking locations) on one planned run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import TypeVar
 
@@ -80,42 +82,66 @@ def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
     torch.set_num_threads(len(cores))
 
 
+class Lanes:
+    """`parallel` worker processes (spawned), each pinned to its own slice of this process's cores for its
+    life (`core_slices`); on a GPU they share the device. A job submitted runs in whichever lane is free:
+    `with Lanes(2) as lanes: future = lanes.submit(job, run)`."""
+
+    def __init__(self, parallel: int, echo: Callable[[str], None] = print) -> None:
+        cores = usable_core_ids()
+        self.parallel = parallel
+        self._slices = core_slices(cores, parallel)
+        if len(cores) < parallel:
+            echo(f"  warning: {parallel} jobs on {len(cores)} cores share them: their step times are not comparable")
+        self._stack = contextlib.ExitStack()
+
+    def __enter__(self) -> Lanes:
+        context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
+        manager = self._stack.enter_context(context.Manager())
+        queue = manager.Queue()
+        for cores_of_one in self._slices:
+            queue.put(cores_of_one)
+        self._pool = self._stack.enter_context(ProcessPoolExecutor(self.parallel, mp_context=context,
+                                                                   initializer=_pin_worker, initargs=(queue,)))
+        return self
+
+    def submit(self, job: Callable[..., Result], *args: object) -> Future[Result]:
+        return self._pool.submit(job, *args)
+
+    def __exit__(self, *exc: object) -> None:
+        self._stack.__exit__(*exc)
+
+
 def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], parallel: int,
                  echo: Callable[[str], None] = print,
                  on_result: Callable[[Result | str], None] | None = None) -> list[Result | str]:
-    """`job(run)` for every run, `parallel` at a time, each in its own (spawned) process pinned to its own
-    slice of this process's cores (`core_slices`); on a GPU they share the device. Prints each run as it ends,
-    with what is still running and waiting, and hands it to `on_result` (in this process). Returns each run's
-    result in `runs`' order, or a message saying why its process died outside the run."""
+    """`job(run)` for every run, `parallel` at a time, each in its own lane (`Lanes`). Prints each run as it
+    ends, with what is still running and waiting, and hands it to `on_result` (in this process). Returns each
+    run's result in `runs`' order, or a message saying why its process died outside the run."""
     if not runs:
         return []
     parallel = min(parallel, len(runs))
-    cores = usable_core_ids()
-    slices = core_slices(cores, parallel)
-    if len(cores) < parallel:
-        echo(f"  warning: {parallel} jobs on {len(cores)} cores share them: their step times are not comparable")
-    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch threads
-    with context.Manager() as manager:
-        queue = manager.Queue()
-        for cores_of_one in slices:
-            queue.put(cores_of_one)
-        results: dict[int, Result | str] = {}
-        started = time.perf_counter()
-        with ProcessPoolExecutor(parallel, mp_context=context, initializer=_pin_worker,
-                                 initargs=(queue,)) as pool:
-            futures = {pool.submit(job, run): i for i, run in enumerate(runs)}
-            for done, future in enumerate(as_completed(futures), 1):
-                i = futures[future]
-                try:
-                    results[i] = future.result()
-                except Exception as exc:  # noqa: BLE001 - a process that died outside the run
-                    results[i] = f"process of {runs[i].name}: {type(exc).__name__}: {exc}"
-                if on_result is not None:
-                    on_result(results[i])
-                status = getattr(results[i], "status", "FAILED")
-                elapsed = time.perf_counter() - started
-                left = len(runs) - done
-                eta = f", about {elapsed / done * left / 60:.0f} min left" if left else ""
-                echo(f"  [{done}/{len(runs)}] {runs[i].name}: {status} after {elapsed / 60:.1f} min "
-                     f"({min(parallel, left)} running, {max(left - parallel, 0)} waiting{eta})")
+    results: dict[int, Result | str] = {}
+    started = time.perf_counter()
+    with Lanes(parallel, echo) as lanes:
+        futures = {lanes.submit(job, run): i for i, run in enumerate(runs)}
+        for done, future in enumerate(as_completed(futures), 1):
+            i = futures[future]
+            results[i] = outcome_of(future, runs[i].name)
+            if on_result is not None:
+                on_result(results[i])
+            status = getattr(results[i], "status", "FAILED")
+            elapsed = time.perf_counter() - started
+            left = len(runs) - done
+            eta = f", about {elapsed / done * left / 60:.0f} min left" if left else ""
+            echo(f"  [{done}/{len(runs)}] {runs[i].name}: {status} after {elapsed / 60:.1f} min "
+                 f"({min(parallel, left)} running, {max(left - parallel, 0)} waiting{eta})")
     return [results[i] for i in range(len(runs))]
+
+
+def outcome_of(future: Future[Result], name: str) -> Result | str:
+    """A finished job's result, or a message saying why the process that ran `name` died outside it."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001 - a process that died outside the run
+        return f"process of {name}: {type(exc).__name__}: {exc}"

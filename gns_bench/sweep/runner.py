@@ -22,11 +22,12 @@ again: its checkpoint is not there to test.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fnmatch
 import hashlib
 import json
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -143,6 +144,14 @@ def run_dir(runs_root: Path, run: PlannedRun) -> Path:
     return runs_root / run.sweep / run.tier / run.name
 
 
+@contextlib.contextmanager
+def stderr_into(path: Path) -> Iterator[None]:
+    """This process's stderr (progress bars, warnings) appended to `path`, line by line, while the block runs."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a", buffering=1) as log, contextlib.redirect_stderr(log):
+        yield
+
+
 def _resumable(out_dir: Path, key: str) -> bool:
     """An earlier attempt at this run left a checkpoint and an MLflow run that still exists (KILLED, FAILED,
     RUNNING) under the same key. A different key means the plan changed under it (a tier's budget, a new
@@ -170,9 +179,14 @@ def set_aside(out_dir: Path) -> Path:
     return target
 
 
+PROGRESS_LOG = "progress.log"  # a run's progress bars when it runs in a lane of its own (`progress_log`)
+
+
 def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri: str | None = None,
-                progress: bool = True) -> RunOutcome:
-    """Train and evaluate one planned run (its dataset must exist). Picklable for submitit."""
+                progress: bool = True, progress_log: bool = False) -> RunOutcome:
+    """Train and evaluate one planned run (its dataset must exist). Picklable for submitit. `progress_log`:
+    the run's progress (steps/s, ETA; its warnings too) goes to `PROGRESS_LOG` in its run directory instead of
+    this process's stderr, for a run that shares the terminal with others (`tail -f` it)."""
     if tracking_uri:
         tracking.use_tracking_uri(tracking_uri)
     dataset = training_data(run, data_root)
@@ -185,10 +199,11 @@ def execute_run(run: PlannedRun, data_root: Path, runs_root: Path, tracking_uri:
     if not resume and out_dir.exists():
         set_aside(out_dir)  # another plan's attempt (its key differs), or a run whose MLflow record is gone
     try:
-        summary = train_run(
-            config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
-            eval_dataset_dir=evaluation_data(run, data_root) if run.evaluated_elsewhere else None,
-            progress=progress, extra_params=_sweep_params(run), extra_tags=_sweep_tags(run, key))
+        with stderr_into(out_dir / PROGRESS_LOG) if progress_log else contextlib.nullcontext():
+            summary = train_run(
+                config, dataset, out_dir, experiment=f"sweep:{run.sweep}", run_name=run.name, resume=resume,
+                eval_dataset_dir=evaluation_data(run, data_root) if run.evaluated_elsewhere else None,
+                progress=progress or progress_log, extra_params=_sweep_params(run), extra_tags=_sweep_tags(run, key))
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - the run is already recorded FAILED in MLflow; the sweep goes on
@@ -432,29 +447,28 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
     return "\n".join(lines)
 
 
-def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
-              launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
-              only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
-              parallel: int = 1, reports_root: Path | None = None,
-              echo: Callable[[str], None] = print,
-              after_run: Callable[[RunOutcome, int], None] | None = None,
-              any_kind: bool = False) -> list[RunOutcome]:
-    """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
-    or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
-    `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
-    the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
-    GPU, sharing the device). `reports_root`: where the run summaries are read, and where each run that
-    finishes (trained, shared, stress-tested, evaluated again) is recorded in its sweep's summary as it ends,
-    with the finished runs MLflow holds that the summary lacks (none: MLflow only). `after_run(outcome,
-    runs_left)`: called as each run the local launcher trains one at a time ends, with how many of this
-    call's runs are still to train. A run held to another kind of machine (`sweep/cpu_kinds.py`) is not
-    trained here (outcome WAITING, saying which kind), unless `any_kind`."""
-    if parallel < 1:
-        raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
-    if parallel > 1 and launcher != "local":
-        raise ValueError(f"parallel = {parallel} is for the local launcher; {launcher} sets its own parallelism")
+@dataclass
+class SweepStart:
+    """What a sweep has before anything trains (`start_sweep`): the outcomes of the runs it needs not train
+    (finished, shared, stress-tested, evaluated again, waiting), the runs still to train in its order, and
+    `keep`, which records a run that ends into the sweep's run summary."""
+
+    outcomes: list[RunOutcome]
+    pending: list[PlannedRun]
+    keep: Callable[[RunOutcome | str], None]
+
+
+def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
+                progress: bool = True, share: bool = True, only: Sequence[str] = (), train: bool = True,
+                reevaluate_reason: str | None = None, reports_root: Path | None = None,
+                echo: Callable[[str], None] = print, any_kind: bool = False,
+                generate: bool = True) -> SweepStart:
+    """Everything `run_sweep` does before it trains: plan the runs (`prepare`; `generate`: make their missing
+    datasets), evaluate the finished ones again (`reevaluate_reason`), record the shared and stress-tested
+    ones, and put what finished into the sweep's run summary; the runs left to train, unless `train` is off."""
     runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only,
-                                   reports_root=reports_root, any_kind=any_kind, runs_root=runs_root)
+                                   reports_root=reports_root, any_kind=any_kind, runs_root=runs_root,
+                                   generate=generate)
     again: list[RunOutcome] = []
     if reevaluate_reason is not None:
         finished = [r for r in runs if status[r.name] == FINISHED]  # a summary's run has no checkpoint here
@@ -500,12 +514,42 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}{where}), recorded without training")
             outcomes.append(share_run(run, key, source))
             keep(outcomes[-1])
+    return SweepStart(outcomes, pending, keep)
+
+
+def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
+              launcher: str = "local", cluster: str | None = None, progress: bool = True, share: bool = True,
+              only: Sequence[str] = (), train: bool = True, reevaluate_reason: str | None = None,
+              parallel: int = 1, reports_root: Path | None = None,
+              echo: Callable[[str], None] = print,
+              after_run: Callable[[RunOutcome, int], None] | None = None,
+              any_kind: bool = False) -> list[RunOutcome]:
+    """Run what the sweep lacks at this tier: its runs matching `only` (shell patterns over run names),
+    or all. `share=False` trains runs another sweep already trained; `train=False` only records those.
+    `reevaluate_reason`: first evaluate the finished runs again (`reevaluate`), saying why. `parallel`: with
+    the local launcher, that many runs at once, each in its own process on its own share of the cores (on a
+    GPU, sharing the device). `reports_root`: where the run summaries are read, and where each run that
+    finishes (trained, shared, stress-tested, evaluated again) is recorded in its sweep's summary as it ends,
+    with the finished runs MLflow holds that the summary lacks (none: MLflow only). `after_run(outcome,
+    runs_left)`: called as each run the local launcher trains one at a time ends, with how many of this
+    call's runs are still to train. A run held to another kind of machine (`sweep/cpu_kinds.py`) is not
+    trained here (outcome WAITING, saying which kind), unless `any_kind`."""
+    if parallel < 1:
+        raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
+    if parallel > 1 and launcher != "local":
+        raise ValueError(f"parallel = {parallel} is for the local launcher; {launcher} sets its own parallelism")
+    begun = start_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, progress=progress, share=share,
+                        only=only, train=train, reevaluate_reason=reevaluate_reason, reports_root=reports_root,
+                        echo=echo, any_kind=any_kind)
+    outcomes, pending, keep = begun.outcomes, begun.pending, begun.keep
     if launcher == "local" and parallel > 1:
         from gns_bench.sweep.launchers import run_parallel
 
-        echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores")
+        echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores; "
+             f"each run's progress in {run_dir(runs_root, pending[0]).parent}/<run>/{PROGRESS_LOG}"
+             if pending else "  nothing to run")
         job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
-                      tracking_uri=tracking.tracking_uri(), progress=False)
+                      tracking_uri=tracking.tracking_uri(), progress=False, progress_log=progress)
         results = run_parallel(job, pending, parallel, echo, on_result=keep)
         outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
                      for run, result in zip(pending, results, strict=True)]
