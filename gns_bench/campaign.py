@@ -26,6 +26,7 @@ from gns_bench.sweep.launchers import Lanes, outcome_of
 from gns_bench.sweep.runner import (
     PROGRESS_LOG,
     RunOutcome,
+    as_outcome,
     execute_run,
     format_plan,
     prepare,
@@ -201,8 +202,9 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
         try:
             sweep = load_sweep(path, sweeps_dir)
             echo(f"== campaign {campaign.name} ({tier}), sweep {index}/{len(campaign.sweeps)}: {sweep.name}")
-            _, status, _ = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root,
-                                   runs_root=runs_root, any_kind=any_kind)
+            planned = prepare(sweep, tier, data_root, generate=False, reports_root=reports_root,
+                              runs_root=runs_root, any_kind=any_kind)
+            status = planned[1]
             if index not in generated and any(s == "dataset missing" for s in status.values()):
                 if any(isinstance(what[0], int) for what in flying.values()):
                     deferred.append((index, path))  # one lane makes datasets at a time: two sweeps may need one
@@ -215,7 +217,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
                                     log)] = (index, path)
                 return
             begun = start_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, progress=progress,
-                                reports_root=reports_root, echo=echo, any_kind=any_kind, generate=False)
+                                reports_root=reports_root, echo=echo, any_kind=any_kind, planned=planned)
         except KeyboardInterrupt:
             raise
         except Exception as exc:  # noqa: BLE001 - one sweep that cannot start is reported; the rest go on
@@ -242,8 +244,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             upcoming[:0] = sorted(again)
             return
         started, run = what
-        result = outcome_of(future, run.name)
-        outcome = result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
+        outcome = as_outcome(run, outcome_of(future, run.name))
         started.outcomes.append(outcome)
         started.keep(outcome)
         started.left -= 1

@@ -179,6 +179,11 @@ def set_aside(out_dir: Path) -> Path:
     return target
 
 
+def as_outcome(run: PlannedRun, result: RunOutcome | str) -> RunOutcome:
+    """A dispatched run's outcome: its own, or FAILED with the message of a process that died outside it."""
+    return result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
+
+
 PROGRESS_LOG = "progress.log"  # a run's progress bars when it runs in a lane of its own (`progress_log`)
 
 
@@ -462,13 +467,14 @@ def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), 
                 progress: bool = True, share: bool = True, only: Sequence[str] = (), train: bool = True,
                 reevaluate_reason: str | None = None, reports_root: Path | None = None,
                 echo: Callable[[str], None] = print, any_kind: bool = False,
-                generate: bool = True) -> SweepStart:
-    """Everything `run_sweep` does before it trains: plan the runs (`prepare`; `generate`: make their missing
-    datasets), evaluate the finished ones again (`reevaluate_reason`), record the shared and stress-tested
-    ones, and put what finished into the sweep's run summary; the runs left to train, unless `train` is off."""
-    runs, status, shared = prepare(sweep, tier, data_root, progress=progress, share=share, only=only,
-                                   reports_root=reports_root, any_kind=any_kind, runs_root=runs_root,
-                                   generate=generate)
+                planned: tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]
+                | None = None) -> SweepStart:
+    """Everything `run_sweep` does before it trains: plan the runs (`prepare`, which makes their missing
+    datasets; `planned`: its result, taken by the caller with the same settings), evaluate the finished ones
+    again (`reevaluate_reason`), record the shared and stress-tested ones, and put what finished into the
+    sweep's run summary; the runs left to train, unless `train` is off."""
+    runs, status, shared = planned or prepare(sweep, tier, data_root, progress=progress, share=share, only=only,
+                                              reports_root=reports_root, any_kind=any_kind, runs_root=runs_root)
     again: list[RunOutcome] = []
     if reevaluate_reason is not None:
         finished = [r for r in runs if status[r.name] == FINISHED]  # a summary's run has no checkpoint here
@@ -551,8 +557,7 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
                       tracking_uri=tracking.tracking_uri(), progress=False, progress_log=progress)
         results = run_parallel(job, pending, parallel, echo, on_result=keep)
-        outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
-                     for run, result in zip(pending, results, strict=True)]
+        outcomes += [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
     elif launcher == "local":
         for index, run in enumerate(pending, 1):
             echo(f"[{index}/{len(pending)}] {run.name}")
@@ -569,8 +574,7 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
         job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
                       tracking_uri=tracking.tracking_uri(), progress=False)
         results = submit(job, pending, runs_root / sweep.name / tier / "submitit", cluster)
-        outcomes += [result if isinstance(result, RunOutcome) else RunOutcome(run.name, "FAILED", error=str(result))
-                     for run, result in zip(pending, results, strict=True)]
+        outcomes += [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
         for result in results:
             keep(result)
     else:
