@@ -11,7 +11,6 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gns_bench.config import EvalConfig
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
@@ -23,6 +22,7 @@ from gns_bench.evaluate.rollout import Hook, RolloutResult, rollout, static_part
 from gns_bench.model.neighbours import radius_graph, rollout_neighbours
 from gns_bench.model.precision import compiled_for_inference, dtype_of, network_dtype
 from gns_bench.model.simulator import LearnedSimulator, kinematic_mask
+from gns_bench.progress import progress_bar
 
 # One-step errors batch windows into one forward up to this many particles a graph (by device kind): on a CPU a
 # larger graph falls out of the caches and costs more a window, on a GPU a small one is launch-bound.
@@ -244,12 +244,12 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
     results, per_traj, methods, stops, flagged = [], [], set(), [], []
     rolled_out_by, compile_choice = rollout_model(simulator, trajectories, config, device)
     skin, skin_choice = neighbour_skin(simulator, trajectories, config, device)
-    for index, traj in enumerate(tqdm(trajectories, desc="evaluate", unit="traj", disable=not progress)):
+    for index, traj in enumerate(progress_bar(trajectories, desc="evaluate", unit="traj", disable=not progress)):
         monitors = arm(health_monitors(simulator, traj, config.rollout_steps, bounds, config.monitors),
                        config.stop_on)
         w = simulator.input_sequence_length
         length = traj.num_steps - w if config.rollout_steps is None else min(config.rollout_steps, traj.num_steps - w)
-        steps_bar = tqdm(total=length, desc=f"trajectory {index} rollout", unit="step", leave=False,
+        steps_bar = progress_bar(total=length, desc=f"trajectory {index} rollout", unit="step", leave=False,
                          disable=not progress)  # within a trajectory: steps/s and ETA
         run_hooks = (*hooks, lambda state, bar=steps_bar: bar.update(1), *monitors)
         started = time.perf_counter()
@@ -325,7 +325,7 @@ def _one_step_only(simulator: LearnedSimulator, trajectories: list[Trajectory], 
                    device: torch.device | str, progress: bool) -> Evaluation:
     """`eval.metrics = ["one_step"]`: the one-step MSEs of each trajectory, and no rollout."""
     rows = [{"trajectory": index, **one_step_mse(simulator, traj, config.one_step_windows, device)._asdict()}
-            for index, traj in enumerate(tqdm(trajectories, desc="evaluate (one-step)", unit="traj",
+            for index, traj in enumerate(progress_bar(trajectories, desc="evaluate (one-step)", unit="traj",
                                               disable=not progress))]
     return Evaluation(summarise(rows), [], rows, {})
 

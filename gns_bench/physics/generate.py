@@ -27,6 +27,7 @@ import numpy as np
 from gns_bench.data.format import SPLITS, DatasetWriter, Metadata, Trajectory, iter_split
 from gns_bench.data.statistics import compute_statistics
 from gns_bench.physics.spec import DomainSpec, load_domain_spec
+from gns_bench.progress import progress_bar
 
 GENERATOR_NAME = "gns-bench"
 # Version of the generated data, stored as the metadata's generator["generator_version"] (missing: 1).
@@ -216,9 +217,7 @@ def generate_dataset(domain: str, tier: str, seed: int, out: str | Path, progres
     done = sum(writer.count(split) for split in SPLITS)
     bar = None
     if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, initial=done, desc=f"{domain}/{tier}", unit="traj", file=sys.stderr)
+        bar = progress_bar(total=total, initial=done, desc=f"{domain}/{tier}", unit="traj")
     start, particles = time.perf_counter(), []
     for split in SPLITS:
         for index in range(writer.count(split), tier_spec.trajectories[split]):

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gns_bench import autotune
 from gns_bench import simulators as registry
@@ -31,6 +30,7 @@ from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.devices import apply_allocator, load_average, resolve_device, set_threads, usable_cores
 from gns_bench.model.noise import random_walk_position_noise
 from gns_bench.model.simulator import LearnedSimulator, Simulator
+from gns_bench.progress import progress_bar
 from gns_bench.train import distributed
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 from gns_bench.train.losses import learning_rate, pushed_forward, pushforward_unroll, training_loss  # noqa: F401
@@ -302,7 +302,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         paused += time.perf_counter() - began
 
     start_step, losses, window_losses = step, [], resumed_window
-    bar = tqdm(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
+    bar = progress_bar(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
                desc="train")
     evaluating = on_eval is not None and tc.eval_every > 0
     if evaluating and step == 0:
