@@ -177,9 +177,9 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     or, where it lacks a dataset, the lane makes it (one lane at a time: a sweep lacking data while one is made
     waits for it, and the sweeps after it start meanwhile). Each sweep's report is written as its runs finish
     (`_report_partway`) and when its last one has (`_write_sweep_reports`). A run's progress goes to
-    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. Ctrl-C in a
-    terminal reaches the lanes' processes too and stops their runs (checkpointed, resumable); a SIGTERM sent to
-    this process alone stops it only once the runs in the lanes have ended: signal the process group."""
+    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. Ctrl-C, or a
+    SIGTERM to this process alone, stops the runs in the lanes too (`Lanes.stop`: each checkpointed, resumable)
+    and begins no other."""
     uri = tracking.tracking_uri()
     job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(), tracking_uri=uri,
                   progress=False, progress_log=progress)

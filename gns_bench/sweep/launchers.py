@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import signal
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -69,12 +70,14 @@ def core_slices(cores: list[int], parallel: int) -> list[list[int]]:
     return slices
 
 
-def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
+def _pin_worker(slices, pids) -> None:  # noqa: ANN001 - a multiprocessing queue and list
     """A worker's initialiser: take one slice of cores for this process (torch's threads follow its affinity,
-    `devices.set_threads`)."""
+    `devices.set_threads`) and say its process id (`Lanes.stop` interrupts it)."""
     cores = slices.get()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, cores)
+    pids.append(os.getpid())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # between jobs: a worker that died here would break the pool
     # A spawned process may have imported torch before this ran (with the parent's main module), its thread
     # pool then sized to every core: size it to this process's share.
     import torch
@@ -82,10 +85,32 @@ def _pin_worker(slices) -> None:  # noqa: ANN001 - a multiprocessing queue
     torch.set_num_threads(len(cores))
 
 
+def _interrupt_once(signum: int, frame: object) -> None:
+    """A lane's SIGINT: the first stops its job (KeyboardInterrupt: training checkpoints its last step, the
+    MLflow run ends KILLED); more, as when Ctrl-C in a terminal reaches the lane and `Lanes.stop` forwards it
+    too, are ignored, so that they cannot cut that checkpoint short. Between jobs a lane ignores SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def _in_lane(stopping, job: Callable[..., Result], *args: object) -> Result:  # noqa: ANN001 - a manager Event
+    """Run `job(*args)` in a lane, unless the lanes are stopping: a process pool hands a worker its next job
+    before the last ends, and that job must not begin after a stop."""
+    if stopping.is_set():
+        raise RuntimeError("not started: the lanes were stopping")
+    signal.signal(signal.SIGINT, _interrupt_once)
+    try:
+        return job(*args)
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class Lanes:
     """`parallel` worker processes (spawned), each pinned to its own slice of this process's cores for its
     life (`core_slices`); on a GPU they share the device. A job submitted runs in whichever lane is free:
-    `with Lanes(2) as lanes: future = lanes.submit(job, run)`."""
+    `with Lanes(2) as lanes: future = lanes.submit(job, run)`. Leaving the block by an exception (Ctrl-C, or
+    the SIGTERM `cli.interrupt_on_signals` turns into one) stops the lanes' jobs first (`stop`), so that a
+    signal to this process alone ends the runs in its lanes as well, each checkpointed where it was."""
 
     def __init__(self, parallel: int, echo: Callable[[str], None] = print) -> None:
         cores = usable_core_ids()
@@ -101,15 +126,30 @@ class Lanes:
         queue = manager.Queue()
         for cores_of_one in self._slices:
             queue.put(cores_of_one)
-        self._pool = self._stack.enter_context(ProcessPoolExecutor(self.parallel, mp_context=context,
-                                                                   initializer=_pin_worker, initargs=(queue,)))
+        self._stopping, self._pids, self._futures = manager.Event(), manager.list(), []
+        self._pool = self._stack.enter_context(ProcessPoolExecutor(
+            self.parallel, mp_context=context, initializer=_pin_worker, initargs=(queue, self._pids)))
         return self
 
     def submit(self, job: Callable[..., Result], *args: object) -> Future[Result]:
-        return self._pool.submit(job, *args)
+        future = self._pool.submit(_in_lane, self._stopping, job, *args)
+        self._futures = [*(f for f in self._futures if not f.done()), future]
+        return future
 
-    def __exit__(self, *exc: object) -> None:
-        self._stack.__exit__(*exc)
+    def stop(self) -> None:
+        """Interrupt the jobs in the lanes (SIGINT: a KeyboardInterrupt in each) and start no queued one.
+        The pool's exit then waits for the interrupted jobs (a shutdown here would not)."""
+        self._stopping.set()
+        for future in self._futures:
+            future.cancel()  # the queued ones; a job a worker already holds sees `_stopping`
+        for pid in list(self._pids):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGINT)
+
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if exc_type is not None:
+            self.stop()
+        self._stack.__exit__(exc_type, *exc)
 
 
 def run_parallel(job: Callable[[PlannedRun], Result], runs: list[PlannedRun], parallel: int,
