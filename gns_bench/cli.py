@@ -470,10 +470,14 @@ def physics_lines(metrics: dict[str, float]) -> list[str]:
     """The physical diagnostics, each against the truth's 1 (gns_bench/evaluate/diagnostics.py)."""
     nan = float("nan")
     one_step, along = metrics.get("gravity_ratio", nan), metrics.get("rollout_gravity_ratio", nan)
+    held = metrics.get("held_gravity_ratio", nan)
     lines = []
     if one_step == one_step or along == along:  # not NaN: some particle was in free fall
         lines.append(f"gravity learned     {one_step:.3g} of g on true windows, {along:.3g} along the rollout "
                      "(1 = the truth's; 0 = blocks that hover)")
+    if held == held:
+        lines.append(f"held still          {held:.3g} of g for the same particles let go from rest in mid-air "
+                     "(near 0: a block the rollout stops there stays)")
     fall = metrics.get("com_fall_ratio", nan)
     if fall == fall:
         lines.append(f"centre of mass      fell {fall:.3g} of the truth's fall by the rollout's end")

@@ -30,7 +30,8 @@ ONE_STEP_PARTICLES = {"cpu": 2048, "cuda": 65536}
 GRAVITY_WINDOWS = 16  # true windows per trajectory on which `one_step_gravity_ratio` asks the model
 # Per-trajectory values that are NaN where they do not apply (no particle in free fall, no walls, the truth
 # barely falls): their summary is the mean over the trajectories where they do.
-NAN_WHERE_NOT_APPLICABLE = ("gravity_ratio", "rollout_gravity_ratio", "wall_pass_fraction", "com_fall_ratio")
+NAN_WHERE_NOT_APPLICABLE = ("gravity_ratio", "held_gravity_ratio", "rollout_gravity_ratio", "wall_pass_fraction",
+                            "com_fall_ratio")
 
 
 @dataclass
@@ -114,7 +115,8 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
     of the moving ones."""
     moving = ~kinematic_mask(torch.from_numpy(trajectory.particle_type))
     total, count, moving_total, moving_count = 0.0, 0, 0.0, 0
-    for batch, predicted in _one_step_predictions(simulator, trajectory, frames, w, device, precision):
+    for batch, predicted in _one_step_predictions(simulator, [trajectory], [(0, t) for t in frames], device,
+                                                  precision):
         windows = batch.window.shape[0] // trajectory.num_particles  # (`num_graphs` would sync a GPU)
         error = (predicted - batch.target).double().square().reshape(windows, -1, trajectory.position.shape[2])
         total += float(error.sum())
@@ -125,13 +127,15 @@ def _one_step_errors(simulator: LearnedSimulator, trajectory: Trajectory, frames
     return total, count, moving_total, moving_count
 
 
-def _one_step_predictions(simulator: LearnedSimulator, trajectory: Trajectory, frames: list[int], w: int,
+def _one_step_predictions(simulator: LearnedSimulator, trajectories: list[Trajectory], samples: list[tuple[int, int]],
                           device: torch.device | str, precision: str) -> Iterator[tuple[GraphBatch, torch.Tensor]]:
-    """The clean windows ending at `frames`, `windows_per_forward` of them a forward, each batch with the
-    model's next positions (the caller sets the network's dtype)."""
-    dtype, per_forward = dtype_of(precision), windows_per_forward(trajectory.num_particles, device)
-    for start in range(0, len(frames), per_forward):
-        batch = make_batch([trajectory], [(0, t) for t in frames[start: start + per_forward]], w).to(device)
+    """The clean windows of `samples` (trajectory index, last input frame), trajectories of one particle count,
+    `windows_per_forward` of them a forward, each batch with the model's next positions (the caller sets the
+    network's dtype)."""
+    dtype, w = dtype_of(precision), simulator.input_sequence_length
+    per_forward = windows_per_forward(trajectories[0].num_particles, device)
+    for start in range(0, len(samples), per_forward):
+        batch = make_batch(trajectories, samples[start: start + per_forward], w).to(device)
         context = batch.context.to(dtype) if batch.context is not None else None
         yield batch, simulator.predict_next_position(batch.window.to(dtype), batch.particle_type, batch.batch,
                                                      context, precision=precision)
@@ -143,6 +147,36 @@ def windows_per_forward(num_particles: int, device: torch.device | str) -> int:
     return max(1, budget // max(num_particles, 1))
 
 
+def _free_fall_frames(simulator: LearnedSimulator, trajectory: Trajectory, gravity: list[float],
+                      max_windows: int) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """Up to `max_windows` last input frames (evenly spread) at which the ground truth has moving particles in
+    free fall, with the true accelerations [T - 2, N, D] and the free-fall mask [T - 2, N] (index i: frame
+    i + 1). No frames with inflow (a window holds only the particles present)."""
+    w = simulator.input_sequence_length
+    moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
+    true_acc = diagnostics.accelerations(trajectory.position)
+    falling = diagnostics.free_fall_mask(true_acc, gravity) & moving[None]
+    frames = [t for t in range(w - 1, trajectory.num_steps - 1) if falling[t - 1].any()]
+    if trajectory.has_inflow:
+        frames = []
+    if len(frames) > max_windows:
+        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
+    return frames, true_acc, falling
+
+
+def _predicted_accelerations(simulator: LearnedSimulator, trajectories: list[Trajectory],
+                             samples: list[tuple[int, int]], device: torch.device | str,
+                             precision: str) -> np.ndarray:
+    """[len(samples), N, D] the model's accelerations on the clean windows (trajectory index, last input
+    frame) of `samples`, trajectories of N particles each, as many a forward as `windows_per_forward`."""
+    chunks = []
+    with network_dtype(simulator, dtype_of(precision)):
+        for batch, predicted in _one_step_predictions(simulator, trajectories, samples, device, precision):
+            window = batch.window.double()
+            chunks.append((predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy())
+    return np.concatenate(chunks).reshape(len(samples), trajectories[0].num_particles, -1)
+
+
 @torch.no_grad()
 def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, gravity: list[float],
                            max_windows: int = GRAVITY_WINDOWS, device: torch.device | str = "cpu",
@@ -150,24 +184,33 @@ def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, 
     """`diagnostics.gravity_ratio` of the model's one-step predictions on true windows: over the moving
     particles the ground truth has in free fall at a window's last frame, the predicted acceleration along g
     over the true one (up to `max_windows` windows, evenly spread over the frames that have such particles)."""
-    w = simulator.input_sequence_length
-    moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
-    true_acc = diagnostics.accelerations(trajectory.position)  # index i: frame i + 1
-    falling = diagnostics.free_fall_mask(true_acc, gravity) & moving[None]
-    frames = [t for t in range(w - 1, trajectory.num_steps - 1) if falling[t - 1].any()]
-    if not frames or trajectory.has_inflow:
+    frames, true_acc, falling = _free_fall_frames(simulator, trajectory, gravity, max_windows)
+    if not frames:
         return float("nan")
-    if len(frames) > max_windows:
-        frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
-    n, d = trajectory.num_particles, trajectory.position.shape[2]
-    chunks = []
-    with network_dtype(simulator, dtype_of(precision)):
-        for batch, predicted in _one_step_predictions(simulator, trajectory, frames, w, device, precision):
-            window = batch.window.double()
-            chunks.append((predicted.double() - 2.0 * window[:, -1] + window[:, -2]).cpu().numpy())
-    ours = np.concatenate(chunks)
+    ours = _predicted_accelerations(simulator, [trajectory], [(0, t) for t in frames], device, precision)
     index = np.array(frames) - 1
-    return diagnostics.gravity_ratio(ours.reshape(len(frames), n, d), true_acc[index], falling[index], gravity)
+    return diagnostics.gravity_ratio(ours, true_acc[index], falling[index], gravity)
+
+
+@torch.no_grad()
+def held_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, gravity: list[float],
+                       max_windows: int = GRAVITY_WINDOWS, device: torch.device | str = "cpu",
+                       precision: str = "fp32") -> float:
+    """`one_step_gravity_ratio` with the material held still: each window's frames all set to its last frame
+    (every input velocity zero), as a block at rest in mid-air just let go. Over the same particles (in free
+    fall there in the truth), the predicted acceleration along g over the true one. Near 1, a block the model's
+    own rollout stops in mid-air falls again; near 0, rest in mid-air is a state the model never leaves."""
+    frames, true_acc, falling = _free_fall_frames(simulator, trajectory, gravity, max_windows)
+    if not frames:
+        return float("nan")
+    w = simulator.input_sequence_length
+    held = [Trajectory(np.repeat(trajectory.position[t: t + 1], w + 1, axis=0), trajectory.particle_type,
+                       None if trajectory.step_context is None else np.repeat(trajectory.step_context[t: t + 1],
+                                                                              w + 1, axis=0))
+            for t in frames]  # frames 0 .. w - 1 the window, frame w a target make_batch wants
+    ours = _predicted_accelerations(simulator, held, [(i, w - 1) for i in range(len(frames))], device, precision)
+    index = np.array(frames) - 1
+    return diagnostics.gravity_ratio(ours, true_acc[index], falling[index], gravity)
 
 
 def physical_diagnostics(result: RolloutResult, bounds: list[list[float]], walls: bool,
@@ -277,9 +320,9 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
             "steps_before_trip": float(diagnostics.steps_before_trip(k, result.stopped_at, trip_steps)),
         }
         if "diagnostics" in wanted:
-            row["gravity_ratio"] = (one_step_gravity_ratio(simulator, traj, gravity, device=device,
-                                                           precision=config.precision)
-                                    if gravity is not None else float("nan"))
+            for name, ratio in (("gravity_ratio", one_step_gravity_ratio), ("held_gravity_ratio", held_gravity_ratio)):
+                row[name] = (ratio(simulator, traj, gravity, device=device, precision=config.precision)
+                             if gravity is not None else float("nan"))
             row.update(physical_diagnostics(result, bounds if bounds is not None else simulator.bounds.tolist(),
                                             walls, gravity, simulator.radius))
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)

@@ -78,13 +78,17 @@ from gns_bench.sweep.summaries import SUMMARY_FILE
 ACCURACY_HEADER = ("| domain | simulator | max N | K | one-step MSE | paper | ratio | MSE, rollout steps 1-10 "
                    "| rollout MSE | paper | ratio | GNS / constant velocity | seeds |")
 DISTRIBUTION_HEADER = "| domain | OT | MMD | KE error | rollout steps covered |"
-DIAGNOSTICS_HEADER = ("| domain | gravity ratio, one step | gravity ratio, rollout | centre-of-mass fall, ours / truth "
+DIAGNOSTICS_HEADER = ("| domain | gravity ratio, one step | held still | gravity ratio, rollout "
+                      "| centre-of-mass fall, ours / truth "
                       "| particles through a wall | steps before a monitor's first trip |")
 DIAGNOSTICS_NOTE = (
     "Gravity ratio: over the particles the ground truth has in free fall (true acceleration g within 10% on three "
     "frames in a row: blocks before their first contact), the mean predicted acceleration along g over the "
-    "true one; 1 = gravity learned, 0 = a block that hovers. *One step*: the model on true windows; *rollout*: "
-    "along its own rollout. Centre-of-mass fall: how far the moving particles' centre moved along g by the "
+    "true one; 1 = gravity learned, 0 = a block that hovers. *One step*: the model on true windows; *held "
+    "still*: the same windows with every frame set to the last (all input velocities 0, a block at rest in "
+    "mid-air let go: a state training windows rarely or never show, and the one a rollout that stops a block in "
+    "mid-air reaches; near 0, the model never leaves it); *rollout*: along its own rollout. Centre-of-mass fall: "
+    "how far the moving particles' centre moved along g by the "
     "rollout's last step, over the truth's (where the truth's moved at least R). Particles through a wall: the "
     "share of moving particles outside the bounds at some step. Steps before a trip: the first step a health "
     "monitor stopped or flagged the rollout, or its length. Mean over test trajectories and seeds; '—': the run "
@@ -130,8 +134,9 @@ def diagnostics_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:
     def mean(metric: str) -> str:
         return fmt(mean_std([r.metric(metric) for r in rows if r.ok])[0])
 
-    return [display_name(sweep.domain), mean("gravity_ratio"), mean("rollout_gravity_ratio"), mean("com_fall_ratio"),
-            mean("wall_pass_fraction"), mean("steps_before_trip")]
+    return [display_name(sweep.domain), *(mean(name) for name in ("gravity_ratio", "held_gravity_ratio",
+                                                                  "rollout_gravity_ratio", "com_fall_ratio",
+                                                                  "wall_pass_fraction", "steps_before_trip"))]
 
 
 def budget_row(sweep: SweepSpec, rows: list[RunRow]) -> list[str]:

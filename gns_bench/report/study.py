@@ -43,6 +43,7 @@ RATIOS = {"against_cv": ("rollout_mse", "baseline_cv_same_steps_mse"),
           "held_against_cv": ("rollout_mse_held", "baseline_cv_rollout_mse")}
 # The physical diagnostics along training (gns_bench/evaluate/diagnostics.py), against steps: 1 is the truth's.
 DIAGNOSTIC_PANELS = (("gravity_ratio", "gravity ratio, one step on true windows"),
+                     ("held_gravity_ratio", "gravity ratio, one step held still (velocities 0)"),
                      ("rollout_gravity_ratio", "gravity ratio along the rollout"),
                      ("com_fall_ratio", "centre-of-mass fall, ours / truth"))
 DPI = 80
