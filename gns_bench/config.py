@@ -115,6 +115,11 @@ class TrainConfig:
     pushforward_share: float = 0.5
     start_window_share: float = 0.0
     start_windows: int = 50
+    # Held-still windows (not in the paper: 0 is its training): this share of each batch replaced by a frame
+    # where every moving particle is in free fall, held at rest for the whole window and let go, its target the
+    # fall from rest at g. A rollout that stops a block in mid-air reaches that state, which the paper's windows
+    # never show (`data/free_fall.py`; the `held_gravity_ratio` diagnostic measures it). Needs the dataset's g.
+    held_share: float = 0.0
     seed: int = 0
     checkpoint_every: int = 1000
     # Keep the checkpoint of every curve point (`eval_every`) as checkpoint-<step>.pt beside checkpoint.pt, and
@@ -164,6 +169,7 @@ class TrainConfig:
         _require(0.0 <= self.position_correction <= 1.0, "train.position_correction", "must be in [0, 1]")
         _require(0.0 <= self.start_window_share <= 1.0, "train.start_window_share", "must be in [0, 1]")
         _require(self.start_windows >= 1, "train.start_windows", "must be >= 1")
+        _require(0.0 <= self.held_share <= 1.0, "train.held_share", "must be in [0, 1]")
         _require(self.checkpoint_every >= 1, "train.checkpoint_every", "must be >= 1")
         _require(self.log_every >= 1, "train.log_every", "must be >= 1")
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")

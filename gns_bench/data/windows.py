@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gns_bench.data.format import Trajectory
+from gns_bench.data.free_fall import held_still
 
 
 @dataclass
@@ -74,10 +75,16 @@ class WindowSampler:
     the only frames where that state occurs, and about 1% of the uniform draws of a 1000-frame trajectory. A
     resting block looks the same to its interior particles (the wall distance is clipped at R, App. B.2), so
     a model that has seen the start rarely resolves "at rest" as "on the floor" and the block hovers.
-    `start_share` shows it the start more often (tests/learning: a share of 0 hovers where 0.25 falls)."""
+    `start_share` shows it the start more often (tests/learning: a share of 0 hovers where 0.25 falls).
+
+    With `held_share`, that share of each batch (drawn after the rest) is replaced by held-still windows
+    (`data/free_fall.held_still`): a frame where every moving particle is in free fall, chosen uniformly among
+    `held_frames` (per trajectory), held at rest for the whole window, its target the fall from rest at `gravity`.
+    `draw` returns the trajectories its samples index, these windows appended."""
 
     def __init__(self, trajectories: list[Trajectory], window: int, seed: int, future: int = 1,
-                 start_share: float = 0.0, start_windows: int = 50):
+                 start_share: float = 0.0, start_windows: int = 50, held_share: float = 0.0,
+                 held_frames: list[np.ndarray] | None = None, gravity: list[float] | None = None):
         self.trajectories = trajectories
         self.window = window
         self.seed = seed
@@ -85,6 +92,14 @@ class WindowSampler:
         if not 0.0 <= start_share <= 1.0:
             raise ValueError(f"start_share must be in [0, 1], got {start_share}")
         self.start_share, self.start_windows = start_share, start_windows
+        if not 0.0 <= held_share <= 1.0:
+            raise ValueError(f"held_share must be in [0, 1], got {held_share}")
+        self.held_share, self.gravity = held_share, gravity
+        self._held = (np.concatenate([np.stack([np.full(len(f), i), f], axis=1) for i, f in enumerate(held_frames)])
+                      if held_share > 0 and held_frames else np.zeros((0, 2), dtype=np.int64))  # (trajectory, frame)
+        if held_share > 0 and (gravity is None or not len(self._held)):
+            raise ValueError("held-still windows need gravity and a frame where every moving particle is in free "
+                             "fall" + ("" if gravity is None else ": no training trajectory has one"))
         # Valid last-input frames t: window-1 .. T-1-future (t+future must exist).
         self.counts = np.array([traj.num_steps - window - future + 1 for traj in trajectories], dtype=np.int64)
         if np.any(self.counts < 1):
@@ -114,8 +129,25 @@ class WindowSampler:
         t = index + self.window - 1
         return [(int(i), int(j)) for i, j in zip(traj, t, strict=True)]
 
+    def draw(self, step: int, batch_size: int) -> tuple[list[Trajectory], list[tuple[int, int]]]:
+        """`samples`, with a share `held_share` of them replaced by held-still windows: (the trajectories the
+        samples index, the samples). Without held windows, the training trajectories themselves."""
+        samples = self.samples(step, batch_size)
+        if self.held_share == 0:
+            return self.trajectories, samples
+        rng = np.random.default_rng([self.seed, step, 2])  # its own stream: the other draws stay as they were
+        held = np.flatnonzero(rng.random(batch_size) < self.held_share)
+        picks = self._held[rng.integers(0, len(self._held), size=len(held))]
+        trajectories = list(self.trajectories)
+        for slot, (traj, frame) in zip(held, picks, strict=True):
+            trajectories.append(held_still(self.trajectories[traj], int(frame), self.window, self.future,
+                                           self.gravity))
+            samples[slot] = (len(trajectories) - 1, self.window - 1)
+        return trajectories, samples
+
     def batch(self, step: int, batch_size: int) -> GraphBatch:
-        return make_batch(self.trajectories, self.samples(step, batch_size), self.window, future=self.future)
+        trajectories, samples = self.draw(step, batch_size)
+        return make_batch(trajectories, samples, self.window, future=self.future)
 
     def noise_generator(self, step: int) -> torch.Generator:
         generator = torch.Generator()

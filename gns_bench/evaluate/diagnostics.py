@@ -6,7 +6,8 @@ A model that has not learned it makes blocks hover, and the position MSE says so
 directly:
 
 - `gravity_ratio`: over the (particle, frame) pairs that are in free fall in the ground truth (their true
-  acceleration is g within `FREE_FALL_TOLERANCE` on three frames in a row: a block before its first contact),
+  acceleration is g within `FREE_FALL_TOLERANCE` on three frames in a row: a block before its first contact;
+  `data/free_fall.py`),
   the mean predicted acceleration along g over the true one. 1 is gravity learned, 0 a hovering block.
 - `wall_pass_fraction`: the share of moving particles that leave the bounds (pass a wall) at some step.
 - the centre of mass of the moving particles against the truth's: its mean distance from the truth's, and
@@ -21,31 +22,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-FREE_FALL_TOLERANCE = 0.1  # |a - g| <= 0.1 |g|: MPM particles in a falling block jitter a little about g
-FREE_FALL_RUN = 3  # frames in a row: a particle passing through g for one frame of an impact is not falling
-
-
-def accelerations(frames: np.ndarray) -> np.ndarray:
-    """[T, N, D] positions -> [T - 2, N, D] accelerations a_t = p_{t+1} - 2 p_t + p_{t-1} (t = 1 .. T-2)."""
-    frames = np.asarray(frames, dtype=np.float64)
-    return frames[2:] - 2.0 * frames[1:-1] + frames[:-2]
-
-
-def free_fall_mask(acceleration: np.ndarray, gravity: Sequence[float],
-                   tolerance: float = FREE_FALL_TOLERANCE, run: int = FREE_FALL_RUN) -> np.ndarray:
-    """[T, N] True where a particle's acceleration [T, N, D] is g within `tolerance` |g| on `run` consecutive
-    frames centred on that one (frames too near either end to have their neighbours count as False)."""
-    g = np.asarray(gravity, dtype=np.float64)
-    close = np.linalg.norm(acceleration - g, axis=-1) <= tolerance * np.linalg.norm(g)
-    half = run // 2
-    mask = np.zeros_like(close)
-    if close.shape[0] < run:
-        return mask
-    inner = np.ones_like(close[: close.shape[0] - 2 * half])
-    for shift in range(run):
-        inner &= close[shift: shift + inner.shape[0]]
-    mask[half: half + inner.shape[0]] = inner
-    return mask
+from gns_bench.data.free_fall import accelerations, free_fall_mask
 
 
 def gravity_ratio(predicted: np.ndarray, truth: np.ndarray, mask: np.ndarray, gravity: Sequence[float]) -> float:

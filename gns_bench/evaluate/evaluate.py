@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gns_bench.config import EvalConfig
+from gns_bench.data import free_fall
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Trajectory
 from gns_bench.data.windows import GraphBatch, make_batch
 from gns_bench.evaluate import diagnostics, metrics
@@ -154,8 +155,8 @@ def _free_fall_frames(simulator: LearnedSimulator, trajectory: Trajectory, gravi
     i + 1). No frames with inflow (a window holds only the particles present)."""
     w = simulator.input_sequence_length
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
-    true_acc = diagnostics.accelerations(trajectory.position)
-    falling = diagnostics.free_fall_mask(true_acc, gravity) & moving[None]
+    true_acc = free_fall.accelerations(trajectory.position)
+    falling = free_fall.free_fall_mask(true_acc, gravity) & moving[None]
     frames = [t for t in range(w - 1, trajectory.num_steps - 1) if falling[t - 1].any()]
     if trajectory.has_inflow:
         frames = []

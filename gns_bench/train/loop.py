@@ -26,6 +26,7 @@ from gns_bench import autotune
 from gns_bench import simulators as registry
 from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_dataset, saved_config
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
+from gns_bench.data.free_fall import falling_frames
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
 from gns_bench.devices import apply_allocator, load_average, resolve_device, set_threads, usable_cores
 from gns_bench.model.noise import random_walk_position_noise
@@ -86,6 +87,23 @@ def batch_loss(simulator: Simulator, batch: GraphBatch, position_noise: torch.Te
                      world_size=world_size, precision=precision, step=step)
 
 
+def _held_frames(share: float, trajectories: list[Trajectory], metadata: Metadata,
+                 dataset_dir: str | Path) -> list[np.ndarray] | None:
+    """Each training trajectory's frames a held-still window may come from (`train.held_share`), or None
+    without them; a clear error where the dataset cannot give one."""
+    if share == 0:
+        return None
+    where = f"train.held_share = {share} on {dataset_dir}"
+    if metadata.gravity is None:
+        raise ConfigError(f"{where}: held-still windows fall at the dataset's gravity, and its metadata.json "
+                          "has no `gravity`")
+    frames = [falling_frames(traj, metadata.gravity) for traj in trajectories]
+    if not any(len(f) for f in frames):
+        raise ConfigError(f"{where}: no training trajectory has a frame where every moving particle is in free "
+                          "fall (data/free_fall.py), so there is no window to hold still")
+    return frames
+
+
 def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: float,
                 rank: int = 0, world_size: int = 1) -> tuple[GraphBatch, torch.Tensor, int]:
     """This process's share of step `step`: its batch, its rows of the noise, the whole batch's moving count.
@@ -93,18 +111,18 @@ def step_inputs(sampler: WindowSampler, step: int, batch_size: int, noise_std: f
     Every process draws the same global batch and noise, then keeps its slice, so N processes with
     batch B see exactly what one process with batch N*B sees.
     """
-    samples = sampler.samples(step, batch_size * world_size)
-    sizes = [sampler.trajectories[t].num_particles for t, _ in samples]
-    moving = torch.from_numpy(np.concatenate([sampler.trajectories[t].particle_type for t, _ in samples])
+    trajectories, samples = sampler.draw(step, batch_size * world_size)
+    sizes = [trajectories[t].num_particles for t, _ in samples]
+    moving = torch.from_numpy(np.concatenate([trajectories[t].particle_type for t, _ in samples])
                               != KINEMATIC_PARTICLE_TYPE)
-    dim = sampler.trajectories[samples[0][0]].position.shape[2]
+    dim = trajectories[samples[0][0]].position.shape[2]
     noise = random_walk_position_noise((sum(sizes), sampler.window, dim), noise_std,
                                        sampler.noise_generator(step), mask=moving)  # kinematic rows: none
     first = rank * batch_size
     start = sum(sizes[:first])
     mine = samples[first:first + batch_size]
     noise = noise[start:start + sum(sizes[first:first + batch_size])]
-    return make_batch(sampler.trajectories, mine, sampler.window, future=sampler.future), noise, int(moving.sum())
+    return make_batch(trajectories, mine, sampler.window, future=sampler.future), noise, int(moving.sum())
 
 
 class LoadWatch:
@@ -237,8 +255,9 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     config = resolve_for_dataset(config, metadata.default_connectivity_radius)
     if trajectories is None:
         trajectories = load_training_split(config, dataset_dir, metadata)
+    held_frames = _held_frames(tc.held_share, trajectories, metadata, dataset_dir)
     sampler = WindowSampler(trajectories, config.model.input_sequence_length, tc.seed, unrolled_steps(config),
-                            tc.start_window_share, tc.start_windows)
+                            tc.start_window_share, tc.start_windows, tc.held_share, held_frames, metadata.gravity)
 
     torch.manual_seed(tc.seed)
     simulator = build_simulator(config, metadata).to(device)

@@ -18,15 +18,6 @@ def parabola(frames: int, particles: int = 5, scale: float = 1.0, start_y: float
     return start[None] + 0.5 * t * (t + 1) * scale * G
 
 
-def test_free_fall_mask_needs_three_frames_at_g():
-    acc = np.repeat(G[None, None], 10, axis=0).copy()  # [10, 1, 2]
-    acc[5, 0] = [0.0, 0.0]  # one frame of contact
-    mask = diagnostics.free_fall_mask(acc, G)[:, 0]
-    assert not mask[0] and not mask[-1]  # no neighbour on one side
-    assert not mask[4] and not mask[5] and not mask[6]  # the contact frame and its neighbours
-    assert mask[1:4].all() and mask[7:9].all()
-
-
 @pytest.mark.parametrize("scale", [1.0, 0.5, 0.0])
 def test_rollout_gravity_ratio_is_the_predicted_share_of_g(scale):
     truth = parabola(40)

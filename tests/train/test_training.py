@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gns_bench.config import ConfigError, load_config
-from gns_bench.data.format import load_split
+from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, load_split, read_metadata
 from gns_bench.evaluate.evaluate import evaluate
 from gns_bench.train.checkpoints import load_checkpoint, load_simulator
 from gns_bench.train.loop import learning_rate, train
@@ -236,6 +238,58 @@ def test_start_window_share_draws_from_the_start_and_leaves_the_release_sampler_
     assert 0.5 < share < 0.5 + uniform_share + 0.08
     with pytest.raises(ValueError, match="start_share"):
         WindowSampler(trajectories, 6, seed=3, start_share=1.5)
+
+
+def test_held_share_replaces_that_share_of_windows_with_blocks_let_go_from_rest(tiny_dataset: Path) -> None:
+    """`train.held_share`: a share 0 draws the release's windows from the training trajectories themselves;
+    a share 0.5 replaces about half the samples (the others as they were) by windows at rest whose target is
+    the fall from rest at g, taken at frames where every moving particle of the truth is in free fall."""
+    from gns_bench.data.free_fall import falling_frames
+    from gns_bench.data.windows import WindowSampler
+
+    trajectories, gravity = load_split(tiny_dataset, "train"), read_metadata(tiny_dataset).gravity
+    frames = [falling_frames(traj, gravity) for traj in trajectories]
+    assert sum(len(f) for f in frames) > 0  # the tiny domain's blocks fall before they land
+    uniform = WindowSampler(trajectories, 6, seed=3)
+    zero = WindowSampler(trajectories, 6, seed=3, held_share=0.0, held_frames=frames, gravity=gravity)
+    assert all(zero.draw(step, 8) == (trajectories, uniform.samples(step, 8)) for step in range(10))
+    half = WindowSampler(trajectories, 6, seed=3, held_share=0.5, held_frames=frames, gravity=gravity)
+    held = 0
+    for step in range(50):
+        drawn, samples = half.draw(step, 8)
+        for slot, (index, t) in enumerate(samples):
+            if index < len(trajectories):
+                assert (index, t) == uniform.samples(step, 8)[slot]
+                continue
+            held += 1
+            window = drawn[index].position[: t + 1]
+            assert np.array_equal(window, np.repeat(window[-1:], 6, axis=0))  # every input velocity 0
+            fall = drawn[index].position[t + 1] - window[-1]
+            moving = drawn[index].particle_type != KINEMATIC_PARTICLE_TYPE
+            assert np.allclose(fall[moving], gravity, rtol=0, atol=1e-7)  # p + g from rest (float32 positions)
+    assert 0.35 < held / 400 < 0.65
+    drawn, samples = half.draw(0, 8)
+    assert half.batch(0, 8).window.shape[0] == sum(drawn[i].num_particles for i, _ in samples)
+    with pytest.raises(ValueError, match="gravity"):
+        WindowSampler(trajectories, 6, seed=3, held_share=0.5, held_frames=frames, gravity=None)
+    with pytest.raises(ValueError, match="free fall"):
+        WindowSampler(trajectories, 6, seed=3, held_share=0.5, held_frames=[f[:0] for f in frames], gravity=gravity)
+
+
+def test_training_with_held_still_windows_runs_and_refuses_a_dataset_without_gravity(tiny_dataset: Path,
+                                                                                     tmp_path: Path) -> None:
+    result = train(load_config(None, QUICK + ["train.steps=20", "train.held_share=0.25"]), tiny_dataset,
+                   tmp_path / "run", progress=False)
+    assert result.final_step == 20 and np.isfinite(result.losses).all()
+    no_gravity = tmp_path / "no-gravity"
+    shutil.copytree(tiny_dataset, no_gravity)
+    meta = json.loads((no_gravity / "metadata.json").read_text())
+    meta.pop("gravity")
+    (no_gravity / "metadata.json").write_text(json.dumps(meta))
+    assert read_metadata(no_gravity).gravity is None
+    with pytest.raises(ConfigError, match="no `gravity`"):
+        train(load_config(None, QUICK + ["train.steps=5", "train.held_share=0.25"]), no_gravity,
+              tmp_path / "refused", progress=False)
 
 
 def test_warm_up_ramps_the_rate_linearly_then_the_decay_goes_on() -> None:
