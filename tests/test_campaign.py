@@ -292,3 +292,27 @@ def test_a_campaign_dry_run_shows_a_branch_waiting_for_its_trunk(sweeps: Path, t
     trunk.parent.mkdir(parents=True)
     trunk.write_bytes(b"")
     assert "to run" in plan()["candidate=branch-seed0"]
+
+
+def test_a_branch_on_a_runs_own_checkpoint_waits_until_that_run_has_finished(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """checkpoint.pt is rewritten as its run trains: a branch from it waits until the run is FINISHED (not
+    while it trains or after it stopped part-way); a kept checkpoint-<step>.pt is final once it is there."""
+    from gns_bench.sweep import runner
+
+    folder = tmp_path / "candidate=trunk-seed0"
+    folder.mkdir()
+    live, kept = folder / "checkpoint.pt", folder / "checkpoint-10.pt"
+    assert not runner.trunk_ready(live)  # nothing there yet
+    live.write_bytes(b"")
+    kept.write_bytes(b"")
+    assert runner.trunk_ready(live)  # no run writes it (a checkpoint brought from elsewhere)
+    (folder / "mlflow_run_id").write_text("abc\n")
+    status = {"abc": "RUNNING"}
+    monkeypatch.setattr(runner.tracking, "get_run",
+                        lambda run_id: type("Record", (), {"status": status[run_id]})())
+    assert not runner.trunk_ready(live) and runner.trunk_ready(kept)
+    status["abc"] = "KILLED"
+    assert not runner.trunk_ready(live)
+    status["abc"] = "FINISHED"
+    assert runner.trunk_ready(live)

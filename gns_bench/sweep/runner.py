@@ -41,6 +41,7 @@ from gns_bench.pipeline import RUN_ID_FILE, reevaluate_run, stress_trained, trai
 from gns_bench.sweep import cpu_kinds
 from gns_bench.sweep.spec import PlannedRun, SweepSpec
 from gns_bench.sweep.summaries import RESTORED_FROM, record_runs, summarised_runs, summary_path
+from gns_bench.train.checkpoints import CHECKPOINT_NAME
 
 
 @dataclass
@@ -364,12 +365,25 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
     if runs_root is not None:
         for run in runs:
             trunk = branch_checkpoint(run.config, runs_root)
-            if status[run.name] == "to run" and trunk is not None and not trunk.is_file():
+            if status[run.name] == "to run" and trunk is not None and not trunk_ready(trunk):
                 status[run.name] = f"{WAITS_FOR_TRUNK} {trunk}"
     return runs, status, shared
 
 
 WAITS_FOR_TRUNK = "waits for the checkpoint it starts from:"
+
+
+def trunk_ready(trunk: Path) -> bool:
+    """Whether a branch may start from `trunk`: the file is there and final. A kept checkpoint-<step>.pt is
+    final once written; a run's own checkpoint.pt only once that run has finished (while it trains, or after
+    it stopped part-way, it holds whatever step the run reached)."""
+    if not trunk.is_file():
+        return False
+    id_file = trunk.parent / RUN_ID_FILE
+    if trunk.name != CHECKPOINT_NAME or not id_file.exists():
+        return True
+    record = tracking.get_run(id_file.read_text().strip())
+    return record is None or record.status == "FINISHED"  # no record here: no run of this store writes it
 RUNS_PREFIX = "runs:"  # train.init_from = "runs:<sweep>/<tier>/<run>/checkpoint-<step>.pt", under the runs root
 
 
