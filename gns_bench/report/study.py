@@ -150,24 +150,25 @@ def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: in
 
 
 def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | None:
-    """The physical diagnostics against training steps, one line per run; None when no run logged them."""
-    fig, axes = plt.subplots(1, len(DIAGNOSTIC_PANELS), figsize=(4.2 * len(DIAGNOSTIC_PANELS), 3.2))
-    drawn = False
+    """The physical diagnostics against training steps, one line per run, a panel for each diagnostic some
+    run logged (runs from before one existed leave it out); None when no run logged any."""
+    panels = [(metric, label) for metric, label in DIAGNOSTIC_PANELS
+              if any(step_points(row, metric) for group in groups.values() for row in group)]
+    if not panels:
+        return None
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
+    axes = axes[0]
     colours = plt.get_cmap("tab10")
     for index, (name, group) in enumerate(groups.items()):
         for seed_index, row in enumerate(group):
-            for ax, (metric, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+            for ax, (metric, _) in zip(axes, panels, strict=True):
                 points = step_points(row, metric)
                 if not points:
                     continue
-                drawn = True
                 x, y = zip(*points, strict=True)
                 ax.plot(x, y, marker="o", ms=3, lw=1, color=colours(index % 10),
                         ls="-" if seed_index == 0 else "--", label=name if seed_index == 0 else None)
-    if not drawn:
-        plt.close(fig)
-        return None
-    for ax, (_, label) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+    for ax, (_, label) in zip(axes, panels, strict=True):
         ax.axhline(1.0, color="black", lw=0.8, ls=":")
         ax.axhline(0.0, color="grey", lw=0.5)
         ax.set_title(label, fontsize=9)

@@ -94,3 +94,29 @@ def test_no_budget_is_extrapolated_from_two_points() -> None:
     assert two is not None and two.exponent_interval is None
     _, prediction = _prediction(two, 0.0173, 0.6, (33000.0, 0.11))
     assert prediction == "too few points to extrapolate (2; the interval needs 3)"
+
+
+def test_the_diagnostics_figure_draws_a_panel_for_each_diagnostic_some_run_logged(tmp_path: Path) -> None:
+    """Runs from before a diagnostic existed leave its panel out rather than an empty frame; no run with any
+    diagnostic, no figure."""
+    from types import SimpleNamespace
+
+    import matplotlib.image
+
+    from gns_bench import tracking
+    from gns_bench.report.collect import RunRow
+    from gns_bench.report.study import DIAGNOSTIC_PANELS, DPI, diagnostics_figure
+
+    def row(curves: dict) -> RunRow:
+        return RunRow(SimpleNamespace(name="r"), tracking.RunRecord("id", "r", "FINISHED", 0, curves=curves))
+
+    older = row({"curve/gravity_ratio": [(0, 0.1), (2000, 0.9)], "curve/rollout_gravity_ratio": [(2000, 0.5)]})
+    newer = row({f"curve/{name}": [(2000, 0.8)] for name, _ in DIAGNOSTIC_PANELS})
+
+    def panels(groups: dict) -> int:
+        path = diagnostics_figure(groups, tmp_path / "figure.png")
+        return round(matplotlib.image.imread(path).shape[1] / (4.2 * DPI))  # each panel 4.2 inches wide
+
+    assert panels({"old": [older]}) == 2
+    assert panels({"old": [older], "new": [newer]}) == len(DIAGNOSTIC_PANELS)
+    assert diagnostics_figure({"none": [row({"curve/one_step_mse": [(0, 1e-8)]})]}, tmp_path / "none.png") is None
