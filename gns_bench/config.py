@@ -116,9 +116,10 @@ class TrainConfig:
     start_window_share: float = 0.0
     start_windows: int = 50
     # Held-still windows (not in the paper: 0 is its training): this share of each batch replaced by a frame
-    # where every moving particle is in free fall, held at rest for the whole window and let go, its target the
-    # fall from rest at g. A rollout that stops a block in mid-air reaches that state, which the paper's windows
-    # never show (`data/free_fall.py`; the `held_gravity_ratio` diagnostic measures it). Needs the dataset's g.
+    # where every moving particle is in free fall, held at rest and let go, the window ending 0 to 5 steps after
+    # the release, its target the fall from rest at g. A rollout that stops a block in mid-air reaches that
+    # state, which the paper's windows never show (`data/free_fall.py`; the `held_gravity_ratio` diagnostic
+    # measures it). Needs the dataset's g.
     held_share: float = 0.0
     seed: int = 0
     checkpoint_every: int = 1000

@@ -57,17 +57,21 @@ def falling_frames(trajectory: Trajectory, gravity: Sequence[float]) -> np.ndarr
     return np.flatnonzero(falling) + 1  # acceleration index i is frame i + 1
 
 
-def held_still(trajectory: Trajectory, frame: int, window: int, future: int,
-               gravity: Sequence[float]) -> Trajectory:
-    """A trajectory of `window + future` frames: the material of `frame` held still for the `window` input
-    frames (every input velocity 0), then let go: its moving particles fall at g from rest, p_k = p + g k(k+1)/2
-    after k steps of the model's integration (v' = v + a, p' = p + v'), its kinematic ones stay. Its last input
-    frame is `window - 1`. Exact for a frame of `falling_frames` (a body in free fall is free of stress)."""
-    held = np.repeat(trajectory.position[frame: frame + 1].astype(np.float64), window + future, axis=0)
+def held_still(trajectory: Trajectory, frame: int, window: int, future: int, gravity: Sequence[float],
+               released: int = 0) -> Trajectory:
+    """A trajectory of `window + released + future` frames: the material of `frame` held still for `window`
+    frames, then let go: its moving particles fall at g from rest, p_k = p + g k(k+1)/2 after k steps of the
+    model's integration (v' = v + a, p' = p + v'), its kinematic ones stay. Its window to train on ends
+    `released` steps after the release, at frame `window - 1 + released`: with `released` 0 every input
+    velocity is 0; up to `window - 1` the window holds the rest and the first steps of the fall, the windows a
+    rollout passes through after it stopped a block in mid-air. Exact for a frame of `falling_frames` (a body
+    in free fall is free of stress)."""
+    frames = window + released + future
+    held = np.repeat(trajectory.position[frame: frame + 1].astype(np.float64), frames, axis=0)
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
-    steps = np.arange(1, future + 1, dtype=np.float64)
-    fall = (steps * (steps + 1) / 2)[:, None] * np.asarray(gravity, dtype=np.float64)[None, :]  # [future, D]
+    steps = np.arange(1, frames - window + 1, dtype=np.float64)
+    fall = (steps * (steps + 1) / 2)[:, None] * np.asarray(gravity, dtype=np.float64)[None, :]
     held[window:, moving] += fall[:, None, :]
     context = (None if trajectory.step_context is None
-               else np.repeat(trajectory.step_context[frame: frame + 1], window + future, axis=0))
+               else np.repeat(trajectory.step_context[frame: frame + 1], frames, axis=0))
     return Trajectory(held.astype(trajectory.position.dtype), trajectory.particle_type, context)

@@ -79,7 +79,8 @@ class WindowSampler:
 
     With `held_share`, that share of each batch (drawn after the rest) is replaced by held-still windows
     (`data/free_fall.held_still`): a frame where every moving particle is in free fall, chosen uniformly among
-    `held_frames` (per trajectory), held at rest for the whole window, its target the fall from rest at `gravity`.
+    `held_frames` (per trajectory), held at rest and let go, the window ending 0 to `window - 1` steps (drawn
+    uniformly) after the release, its target the fall from rest at `gravity`.
     `draw` returns the trajectories its samples index, these windows appended."""
 
     def __init__(self, trajectories: list[Trajectory], window: int, seed: int, future: int = 1,
@@ -138,11 +139,12 @@ class WindowSampler:
         rng = np.random.default_rng([self.seed, step, 2])  # its own stream: the other draws stay as they were
         held = np.flatnonzero(rng.random(batch_size) < self.held_share)
         picks = self._held[rng.integers(0, len(self._held), size=len(held))]
+        released = rng.integers(0, self.window, size=len(held))  # 0: at rest; up to the window: falling from it
         trajectories = list(self.trajectories)
-        for slot, (traj, frame) in zip(held, picks, strict=True):
+        for slot, (traj, frame), steps in zip(held, picks, released, strict=True):
             trajectories.append(held_still(self.trajectories[traj], int(frame), self.window, self.future,
-                                           self.gravity))
-            samples[slot] = (len(trajectories) - 1, self.window - 1)
+                                           self.gravity, int(steps)))
+            samples[slot] = (len(trajectories) - 1, self.window - 1 + int(steps))
         return trajectories, samples
 
     def batch(self, step: int, batch_size: int) -> GraphBatch:

@@ -45,18 +45,19 @@ def test_falling_frames_are_those_where_every_moving_particle_falls():
                                     G).size == 0  # inflow: not every particle is there
 
 
-@pytest.mark.parametrize("future", [1, 3])
-def test_a_held_window_is_at_rest_and_its_target_the_models_fall_from_rest(future):
+@pytest.mark.parametrize(("future", "released"), [(1, 0), (3, 0), (1, 4)])
+def test_a_held_window_is_at_rest_and_its_target_the_models_fall_from_rest(future, released):
     traj, window, frame = _falls_then_lands(), 6, 12
-    held = free_fall.held_still(traj, frame, window, future, G)
-    assert held.num_steps == window + future
+    held = free_fall.held_still(traj, frame, window, future, G, released)
+    assert held.num_steps == window + released + future
     assert np.array_equal(held.position[:window], np.repeat(traj.position[frame: frame + 1], window, axis=0))
-    # the model's integration (v' = v + a, p' = p + v') from rest at acceleration g reproduces the targets
+    # the model's integration (v' = v + a, p' = p + v') from rest at acceleration g reproduces every frame
+    # after the release: the window's last `released` ones and the targets
     p, v = held.position[window - 1].astype(np.float64), np.zeros((4, 2))
     moving = traj.particle_type != KINEMATIC_PARTICLE_TYPE
-    for k in range(future):
+    for k in range(released + future):
         v = v + np.where(moving[:, None], G, 0.0)
         p = p + v
         assert held.position[window + k] == pytest.approx(p, abs=1e-7)
     assert np.array_equal(held.position[:, ~moving], np.repeat(traj.position[frame: frame + 1, ~moving],
-                                                               window + future, axis=0))  # walls stay
+                                                               held.num_steps, axis=0))  # walls stay

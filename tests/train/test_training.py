@@ -254,7 +254,7 @@ def test_held_share_replaces_that_share_of_windows_with_blocks_let_go_from_rest(
     zero = WindowSampler(trajectories, 6, seed=3, held_share=0.0, held_frames=frames, gravity=gravity)
     assert all(zero.draw(step, 8) == (trajectories, uniform.samples(step, 8)) for step in range(10))
     half = WindowSampler(trajectories, 6, seed=3, held_share=0.5, held_frames=frames, gravity=gravity)
-    held = 0
+    held, released = 0, []
     for step in range(50):
         drawn, samples = half.draw(step, 8)
         for slot, (index, t) in enumerate(samples):
@@ -262,12 +262,15 @@ def test_held_share_replaces_that_share_of_windows_with_blocks_let_go_from_rest(
                 assert (index, t) == uniform.samples(step, 8)[slot]
                 continue
             held += 1
-            window = drawn[index].position[: t + 1]
-            assert np.array_equal(window, np.repeat(window[-1:], 6, axis=0))  # every input velocity 0
-            fall = drawn[index].position[t + 1] - window[-1]
+            released.append(t - 5)
+            path = drawn[index].position  # held for 6 frames, then falling from rest: p + g m (m + 1) / 2
             moving = drawn[index].particle_type != KINEMATIC_PARTICLE_TYPE
-            assert np.allclose(fall[moving], gravity, rtol=0, atol=1e-7)  # p + g from rest (float32 positions)
+            for f in range(t + 2):  # the window and its target
+                m = max(0, f - 5)
+                assert np.allclose(path[f][moving], path[0][moving] + np.multiply(gravity, m * (m + 1) / 2),
+                                   rtol=0, atol=1e-7)  # float32 positions
     assert 0.35 < held / 400 < 0.65
+    assert set(released) == set(range(6))  # from every input velocity 0 to a window all of the fall
     drawn, samples = half.draw(0, 8)
     assert half.batch(0, 8).window.shape[0] == sum(drawn[i].num_particles for i, _ in samples)
     with pytest.raises(ValueError, match="gravity"):
