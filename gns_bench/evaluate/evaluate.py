@@ -205,10 +205,7 @@ def held_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, grav
     if not frames:
         return float("nan")
     w = simulator.input_sequence_length
-    held = [Trajectory(np.repeat(trajectory.position[t: t + 1], w + 1, axis=0), trajectory.particle_type,
-                       None if trajectory.step_context is None else np.repeat(trajectory.step_context[t: t + 1],
-                                                                              w + 1, axis=0))
-            for t in frames]  # frames 0 .. w - 1 the window, frame w a target make_batch wants
+    held = [free_fall.held_still(trajectory, t, w, 1, gravity) for t in frames]  # the windows `train.held_share` adds
     ours = _predicted_accelerations(simulator, held, [(i, w - 1) for i in range(len(frames))], device, precision)
     index = np.array(frames) - 1
     return diagnostics.gravity_ratio(ours, true_acc[index], falling[index], gravity)

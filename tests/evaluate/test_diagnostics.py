@@ -91,6 +91,7 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
                           gravity=meta.gravity, walls=meta.walls)
     m = evaluation.metrics
     assert abs(m["gravity_ratio"]) < 1e-6 and abs(m["rollout_gravity_ratio"]) < 1e-6
+    assert abs(m["held_gravity_ratio"]) < 1e-6
     assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "steps_before_trip"} <= set(m)
     assert m["steps_before_trip"] <= m["rollout_steps"]
     # the same model with gravity as its mean acceleration falls freely: ratio 1 on free-falling particles
@@ -99,3 +100,29 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
                        gravity=meta.gravity, walls=meta.walls)
     assert falling.metrics["gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
     assert falling.metrics["rollout_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
+    assert falling.metrics["held_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_held_still_tells_a_model_that_reads_g_from_the_velocity_history(tiny_dataset, monkeypatch):
+    """A model that extrapolates each particle's last acceleration from its own velocity history predicts g
+    for a block in free fall on true windows, and nothing for the same block held still: the held-still ratio
+    tells it from one that has learned g itself (1 on both, above)."""
+    from gns_bench.config import load_config, resolve_for_dataset
+    from gns_bench.data.format import load_split, read_metadata
+    from gns_bench.evaluate.evaluate import held_gravity_ratio, one_step_gravity_ratio
+    from gns_bench.train.checkpoints import build_simulator
+
+    meta = read_metadata(tiny_dataset)
+    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
+                                                    "model.message_passing_steps=1"]),
+                                 meta.default_connectivity_radius)
+    simulator = build_simulator(config, meta).eval()
+    traj = load_split(tiny_dataset, "test")[0]
+
+    def from_history(window, *args, **kwargs):  # p + v + (v - v_prev): the last acceleration again
+        v, v_prev = window[:, -1] - window[:, -2], window[:, -2] - window[:, -3]
+        return window[:, -1] + v + (v - v_prev)
+
+    monkeypatch.setattr(simulator, "predict_next_position", from_history)
+    assert one_step_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(1.0, abs=0.1)
+    assert held_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(0.0, abs=1e-9)

@@ -232,9 +232,11 @@ def test_one_step_measurements_do_not_depend_on_how_windows_are_batched(
     for budget in (1, 3 * n, 10**9):
         monkeypatch.setitem(ev.ONE_STEP_PARTICLES, "cpu", budget)
         seen.append((ev.windows_per_forward(n, "cpu"), ev.one_step_mse(untrained, traj, 20),
-                     ev.one_step_gravity_ratio(untrained, traj, gravity)))
+                     ev.one_step_gravity_ratio(untrained, traj, gravity),
+                     ev.held_gravity_ratio(untrained, traj, gravity)))
     assert [s[0] for s in seen] == [1, 3, 10**9 // n]
-    for _, mse, ratio in seen[1:]:
+    for _, mse, ratio, held in seen[1:]:
+        assert held == pytest.approx(seen[0][3], rel=1e-4, abs=1e-6)
         assert mse.one_step_mse == pytest.approx(seen[0][1].one_step_mse, rel=1e-5)
         assert mse.one_step_mse_moving == pytest.approx(seen[0][1].one_step_mse_moving, rel=1e-5)
         assert ratio == pytest.approx(seen[0][2], rel=1e-4, abs=1e-6)
