@@ -7,6 +7,7 @@ the end.
 """
 from __future__ import annotations
 
+import re
 import sys
 from collections.abc import Iterable
 from typing import IO, Any
@@ -16,14 +17,18 @@ from tqdm import tqdm
 LOG_INTERVAL_S = 30.0  # one progress line per half minute in a log: 120 lines an hour
 
 
+_CURSOR_MOVES = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")  # how tqdm places nested bars in a terminal
+
+
 class _Lines:
-    """A file for tqdm that writes each redraw as its own line (carriage returns and padding dropped)."""
+    """A file for tqdm that writes each redraw as its own line (carriage returns, cursor moves and padding
+    dropped)."""
 
     def __init__(self, stream: IO[str]) -> None:
         self.stream = stream
 
     def write(self, text: str) -> None:
-        line = text.replace("\r", "").rstrip()
+        line = _CURSOR_MOVES.sub("", text.replace("\r", "")).rstrip()
         if line:
             self.stream.write(line + "\n")
 

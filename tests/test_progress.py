@@ -30,6 +30,19 @@ def test_a_log_gets_one_line_per_redraw_and_the_final_count(monkeypatch):
     assert "10/10" in lines[-1]
 
 
+def test_a_nested_bar_in_a_log_moves_no_cursor(monkeypatch):
+    monkeypatch.setattr(progress, "LOG_INTERVAL_S", 0.0)
+    stream = io.StringIO()
+    outer = progress_bar(total=2, file=stream, desc="evaluate")
+    inner = progress_bar(total=3, file=stream, desc="rollout", leave=False)  # placed below the outer one
+    for _ in range(3):
+        inner.update(1)
+    inner.close()
+    outer.update(2)
+    outer.close()
+    assert "\x1b" not in stream.getvalue() and "rollout:" in stream.getvalue()
+
+
 def test_a_log_is_throttled_to_the_interval():
     text = _run(io.StringIO(), steps=1000)  # 1,000 fast updates inside one interval
     assert len(text.splitlines()) <= 3  # the first draw and the last, not a thousand
