@@ -7,6 +7,7 @@ over seeds, named only when its seeds' spread keeps it clear of the runner-up.""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import matplotlib
@@ -113,72 +114,58 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
     return lines
 
 
-def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: int) -> Path | None:
-    """Error against training time, one line per run (colour per candidate), one panel per metric some run
-    logged."""
-    panels = [(metric, label) for metric, label in CURVE_PANELS
-              if any(curve(row, metric) for group in groups.values() for row in group)]
+def _panels_figure(groups: dict[str, list[RunRow]], panels: list[tuple[str, str]],
+                   points_of: Callable[[RunRow, str], list[tuple[float, float]]], path: Path, *, xlabel: str,
+                   x_unit: float = 1.0, style: Callable[[plt.Axes], None] = lambda ax: None) -> Path | None:
+    """One panel per (metric, title) of `panels` that some run has points of (`points_of(row, metric)`: x, y),
+    one line per run (a colour per candidate, further seeds dashed), x divided by `x_unit`; `style` finishes
+    each panel. None when no run has any."""
+    panels = [(metric, title) for metric, title in panels
+              if any(points_of(row, metric) for group in groups.values() for row in group)]
     if not panels:
         return None
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
     axes = axes[0]
-    drawn = False
     colours = plt.get_cmap("tab10")
     for index, (name, group) in enumerate(groups.items()):
         for seed_index, row in enumerate(group):
             for ax, (metric, _) in zip(axes, panels, strict=True):
-                points = curve(row, metric)
+                points = points_of(row, metric)
                 if not points:
                     continue
-                drawn = True
                 x, y = zip(*points, strict=True)
-                ax.plot([t / 60 for t in x], y, marker="o", ms=3, lw=1, color=colours(index % 10),
-                         ls="-" if seed_index == 0 else "--", label=name if seed_index == 0 else None)
-    if not drawn:
-        plt.close(fig)
-        return None
-    for ax, (_, label) in zip(axes, panels, strict=True):
-        ax.set_title(label.format(steps=rollout_steps), fontsize=9)
-        ax.set_xlabel("training time (min)")
-        ax.set_yscale("log")
+                ax.plot([value / x_unit for value in x], y, marker="o", ms=3, lw=1, color=colours(index % 10),
+                        ls="-" if seed_index == 0 else "--", label=name if seed_index == 0 else None)
+    for ax, (_, title) in zip(axes, panels, strict=True):
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
+        style(ax)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
+
+
+def curves_figure(groups: dict[str, list[RunRow]], path: Path, rollout_steps: int) -> Path | None:
+    """Error against training time, one line per run (colour per candidate), one panel per metric some run
+    logged."""
+    return _panels_figure(groups, [(metric, label.format(steps=rollout_steps)) for metric, label in CURVE_PANELS],
+                          curve, path, xlabel="training time (min)", x_unit=60.0,
+                          style=lambda ax: ax.set_yscale("log"))
+
+
+def _truth_lines(ax: plt.Axes) -> None:
+    ax.axhline(1.0, color="black", lw=0.8, ls=":")  # the truth's
+    ax.axhline(0.0, color="grey", lw=0.5)
 
 
 def diagnostics_figure(groups: dict[str, list[RunRow]], path: Path) -> Path | None:
     """The physical diagnostics against training steps, one line per run, a panel for each diagnostic some
     run logged (runs from before one existed leave it out); None when no run logged any."""
-    panels = [(metric, label) for metric, label in DIAGNOSTIC_PANELS
-              if any(step_points(row, metric) for group in groups.values() for row in group)]
-    if not panels:
-        return None
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.2), squeeze=False)
-    axes = axes[0]
-    colours = plt.get_cmap("tab10")
-    for index, (name, group) in enumerate(groups.items()):
-        for seed_index, row in enumerate(group):
-            for ax, (metric, _) in zip(axes, panels, strict=True):
-                points = step_points(row, metric)
-                if not points:
-                    continue
-                x, y = zip(*points, strict=True)
-                ax.plot(x, y, marker="o", ms=3, lw=1, color=colours(index % 10),
-                        ls="-" if seed_index == 0 else "--", label=name if seed_index == 0 else None)
-    for ax, (_, label) in zip(axes, panels, strict=True):
-        ax.axhline(1.0, color="black", lw=0.8, ls=":")
-        ax.axhline(0.0, color="grey", lw=0.5)
-        ax.set_title(label, fontsize=9)
-        ax.set_xlabel("training steps")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
-    return path
+    return _panels_figure(groups, list(DIAGNOSTIC_PANELS), step_points, path, xlabel="training steps",
+                          style=_truth_lines)
 
 
 GRAVITY_TOLERANCE = 0.1  # a block falls at g when its gravity ratio is within 10% of 1
