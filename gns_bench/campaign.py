@@ -25,8 +25,10 @@ from gns_bench.sweep.campaigns import Campaign
 from gns_bench.sweep.launchers import Lanes, outcome_of
 from gns_bench.sweep.runner import (
     PROGRESS_LOG,
+    WAITS_FOR_TRUNK,
     RunOutcome,
     as_outcome,
+    branch_checkpoint,
     execute_run,
     format_plan,
     prepare,
@@ -34,6 +36,7 @@ from gns_bench.sweep.runner import (
     run_sweep,
     start_sweep,
     stderr_into,
+    trunk_ready,
 )
 from gns_bench.sweep.spec import SWEEPS_DIR, PlannedRun, SweepSpec, load_sweep
 from gns_bench.sweep.summaries import read_run_summary, summary_path
@@ -167,6 +170,9 @@ def make_datasets(path: Path, tier: str, data_root: Path, sweeps_dir: Path, repo
     return sweep.name
 
 
+HELD_POLL_S = 60.0  # how often a campaign in lanes looks for the checkpoint a held branch starts from
+
+
 def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: Path, reports_root: Path,
                   echo: Callable[[str], None], sweeps_dir: Path, parallel: int, any_kind: bool,
                   progress: bool) -> list[SweepResult]:
@@ -177,7 +183,11 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     or, where it lacks a dataset, the lane makes it (one lane at a time: a sweep lacking data while one is made
     waits for it, and the sweeps after it start meanwhile). Each sweep's report is written as its runs finish
     (`_report_partway`) and when its last one has (`_write_sweep_reports`). A run's progress goes to
-    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. Ctrl-C, or a
+    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. A branch
+    whose checkpoint is not ready (`train.init_from`: a kept checkpoint not yet written, or a run's own
+    checkpoint.pt before that run has finished) is held and queued, in the campaign's order, as soon as it is
+    (looked at each minute and as each run ends), so a trunk and its branches run in one campaign; its sweep's
+    last report waits for it, and what is still held when nothing else is left to run ends WAITING. Ctrl-C, or a
     SIGTERM to this process alone, stops the runs in the lanes too (`Lanes.stop`: each checkpointed, resumable)
     and begins no other."""
     uri = tracking.tracking_uri()
@@ -188,6 +198,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     generated: set[int] = set()  # sweeps whose datasets a lane has made (or failed to)
     deferred: list[tuple[int, Path]] = []  # sweeps lacking a dataset while a lane makes another's
     queue: list[tuple[_Started, PlannedRun]] = []
+    held: list[tuple[_Started, PlannedRun, Path]] = []  # branches whose checkpoint is not ready yet
     flying: dict[Future, tuple[_Started, PlannedRun] | tuple[int, Path]] = {}
     started_at = time.perf_counter()
 
@@ -224,10 +235,33 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             echo(f"  sweep {path.stem} failed: {type(exc).__name__}: {exc}")
             results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
             return
-        started = _Started(index, path, sweep, begun.outcomes, begun.keep, len(begun.pending))
+        branches = {r.name: r for r in planned[0] if status[r.name].startswith(WAITS_FOR_TRUNK)}
+        outcomes = [o for o in begun.outcomes if not (o.status == "WAITING" and o.name in branches)]
+        started = _Started(index, path, sweep, outcomes, begun.keep, len(begun.pending) + len(branches))
         queue.extend((started, run) for run in begun.pending)
-        if not begun.pending:
+        for run in branches.values():
+            held.append((started, run, branch_checkpoint(run.config, runs_root)))
+            echo(f"  {run.name}: held; queued once that checkpoint is ready")
+        if not started.left:
             finish(started)
+
+    def release(give_up: bool = False) -> None:
+        """Queue each held branch whose checkpoint is ready, after the queued runs of its sweep and those before
+        it; `give_up`: nothing else is left to run, so the rest end WAITING."""
+        for entry in list(held):
+            started, run, trunk = entry
+            if trunk_ready(trunk):
+                held.remove(entry)
+                at = sum(1 for queued, _ in queue if queued.index <= started.index)
+                queue.insert(at, (started, run))
+                echo(f"  {run.name} ({started.sweep.name}): its checkpoint is ready ({trunk.name}); queued")
+            elif give_up:
+                held.remove(entry)
+                started.outcomes.append(RunOutcome(run.name, "WAITING", error=f"{WAITS_FOR_TRUNK} {trunk}"))
+                started.left -= 1
+                echo(f"  {run.name} ({started.sweep.name}): still {WAITS_FOR_TRUNK} {trunk}")
+                if not started.left:
+                    finish(started)
 
     def ended(future: Future) -> None:
         what = flying.pop(future)
@@ -259,6 +293,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
 
     with Lanes(parallel, echo) as lanes:
         while True:
+            release()
             while len(flying) < parallel and (queue or upcoming):
                 if queue:
                     started, run = queue.pop(0)
@@ -268,8 +303,11 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
                 else:
                     start(*upcoming.pop(0), lanes)
             if not flying:
-                break
-            done, _ = wait(flying, return_when=FIRST_COMPLETED)
+                release(give_up=True)  # queues any whose checkpoint came just now
+                if not queue:
+                    break
+                continue
+            done, _ = wait(flying, timeout=HELD_POLL_S if held else None, return_when=FIRST_COMPLETED)
             for future in done:
                 ended(future)
     return [results[index] for index in sorted(results)]

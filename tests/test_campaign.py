@@ -12,6 +12,7 @@ from gns_bench.datasets import ensure_dataset
 from gns_bench.evaluate.cost import EvaluationCost
 from gns_bench.sweep.campaigns import load_campaign
 from gns_bench.sweep.spec import SWEEPS_DIR, SweepError, load_sweep
+from gns_bench.train.checkpoints import load_checkpoint
 from gns_bench.train.rate import StepRate
 
 SWEEP = '''description = "{name}"
@@ -292,6 +293,35 @@ def test_a_campaign_dry_run_shows_a_branch_waiting_for_its_trunk(sweeps: Path, t
     trunk.parent.mkdir(parents=True)
     trunk.write_bytes(b"")
     assert "to run" in plan()["candidate=branch-seed0"]
+
+
+def test_a_campaign_in_lanes_starts_a_branch_once_its_trunk_has_finished(sweeps: Path, tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A branch from a run's own checkpoint, planned while that run is still to train, is held and runs in the
+    same campaign once the run has finished; a branch whose checkpoint nothing in the campaign writes ends
+    WAITING, and the campaign ends."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'branches.db'}")
+    (sweeps / "studies").mkdir()
+    (sweeps / "studies" / "branches.toml").write_text(
+        SWEEP.format(name="a trunk and branches of it", steps=1)
+        + '\n[candidates.trunk]\n\n[candidates.branch.config.train]\nsteps = 24\n'
+        'init_from = "runs:study-branches/smoke/candidate=trunk-seed{seed}/checkpoint.pt"\n'
+        '\n[candidates.orphan.config.train]\nsteps = 24\n'
+        'init_from = "runs:study-elsewhere/smoke/candidate=trunk-seed{seed}/checkpoint.pt"\n')
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["studies/branches.toml"]\n')
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
+    said: list[str] = []
+    [result] = run_campaign(load_campaign(path, sweeps), "smoke", echo=said.append, sweeps_dir=sweeps, parallel=2,
+                            **roots)
+    status = {o.name: o.status for o in result.outcomes}
+    assert status == {"candidate=trunk-seed0": "FINISHED", "candidate=branch-seed0": "FINISHED",
+                      "candidate=orphan-seed0": "WAITING"}, said
+    trunk_done = next(i for i, line in enumerate(said) if "trunk-seed0 (study-branches): FINISHED" in line)
+    branch_in = next(i for i, line in enumerate(said) if "branch-seed0 (study-branches) into a lane" in line)
+    assert trunk_done < branch_in, said
+    branch = tmp_path / "runs" / "study-branches" / "smoke" / "candidate=branch-seed0" / "checkpoint.pt"
+    assert load_checkpoint(branch)["step"] == 24
 
 
 def test_a_branch_on_a_runs_own_checkpoint_waits_until_that_run_has_finished(tmp_path: Path,

@@ -39,8 +39,10 @@ from gns_bench.train.losses import learning_rate, pushed_forward, pushforward_un
 # Train settings that may change between an interrupted run and its resumption.
 RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_threads", "max_wall_seconds",
                      "eval_every", "eval_trajectories", "eval_rollout_steps", "keep_checkpoints"}
-# And between the run that wrote a checkpoint and a run that starts from it (`train.init_from`).
-BRANCH_CHANGES = RESUMABLE_CHANGES | {"learning_rate_anneal_steps", "learning_rate_anneal_to", "init_from"}
+# And between the run that wrote a checkpoint and a run that starts from it (`train.init_from`): how the rate
+# ends and which windows are drawn from there (held-still windows added to a trunk trained without them).
+BRANCH_CHANGES = RESUMABLE_CHANGES | {"learning_rate_anneal_steps", "learning_rate_anneal_to", "init_from",
+                                      "held_share"}
 
 
 @dataclass

@@ -89,7 +89,8 @@ def test_a_branch_from_a_kept_checkpoint_goes_on_as_the_trunk_did_until_its_anne
                                                                                     tmp_path: Path) -> None:
     """`train.keep_checkpoints` keeps each curve point's checkpoint; a run started from one (`train.init_from`)
     continues the trunk's steps, rate and training clock bit for bit, and an anneal over its last steps changes
-    only those. A branch that changes anything else is refused."""
+    only those; one may also draw held-still windows the trunk did not. A branch that changes anything else is
+    refused."""
     trunk_config = load_config(None, QUICK + ["train.steps=20", "train.eval_every=10", "train.keep_checkpoints=true"])
     trunk = train(trunk_config, tiny_dataset, tmp_path / "trunk", progress=False, on_eval=lambda *args: None)
     kept = tmp_path / "trunk" / "checkpoint-10.pt"
@@ -102,6 +103,9 @@ def test_a_branch_from_a_kept_checkpoint_goes_on_as_the_trunk_did_until_its_anne
                                                 "train.learning_rate_anneal_steps=5"]),
                      tiny_dataset, tmp_path / "annealed", progress=False)
     assert annealed.losses[:6] == trunk.losses[10:16] and annealed.losses[6:] != trunk.losses[16:]
+    held = train(load_config(None, QUICK + ["train.steps=20", f"train.init_from={kept}", "train.held_share=0.5"]),
+                 tiny_dataset, tmp_path / "held", progress=False)
+    assert held.start_step == 10 and held.losses != trunk.losses[10:]  # other windows drawn from the same state
     with pytest.raises(ValueError, match="noise_std"):
         train(load_config(None, QUICK + ["train.steps=20", f"train.init_from={kept}", "train.noise_std=1e-3"]),
               tiny_dataset, tmp_path / "other", progress=False)
