@@ -25,18 +25,17 @@ from gns_bench.sweep.campaigns import Campaign
 from gns_bench.sweep.launchers import Lanes, outcome_of
 from gns_bench.sweep.runner import (
     PROGRESS_LOG,
-    WAITS_FOR_TRUNK,
     RunOutcome,
     as_outcome,
-    branch_checkpoint,
     execute_run,
     format_plan,
     prepare,
+    ready_branches,
     run_dir,
     run_sweep,
     start_sweep,
     stderr_into,
-    trunk_ready,
+    waiting_outcome,
 )
 from gns_bench.sweep.spec import SWEEPS_DIR, PlannedRun, SweepSpec, load_sweep
 from gns_bench.sweep.summaries import read_run_summary, summary_path
@@ -198,7 +197,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     generated: set[int] = set()  # sweeps whose datasets a lane has made (or failed to)
     deferred: list[tuple[int, Path]] = []  # sweeps lacking a dataset while a lane makes another's
     queue: list[tuple[_Started, PlannedRun]] = []
-    held: list[tuple[_Started, PlannedRun, Path]] = []  # branches whose checkpoint is not ready yet
+    held: list[tuple[_Started, PlannedRun]] = []  # branches whose checkpoint is not ready yet
     flying: dict[Future, tuple[_Started, PlannedRun] | tuple[int, Path]] = {}
     started_at = time.perf_counter()
 
@@ -235,12 +234,10 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             echo(f"  sweep {path.stem} failed: {type(exc).__name__}: {exc}")
             results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
             return
-        branches = {r.name: r for r in planned[0] if status[r.name].startswith(WAITS_FOR_TRUNK)}
-        outcomes = [o for o in begun.outcomes if not (o.status == "WAITING" and o.name in branches)]
-        started = _Started(index, path, sweep, outcomes, begun.keep, len(begun.pending) + len(branches))
+        started = _Started(index, path, sweep, begun.outcomes, begun.keep, len(begun.pending) + len(begun.branches))
         queue.extend((started, run) for run in begun.pending)
-        for run in branches.values():
-            held.append((started, run, branch_checkpoint(run.config, runs_root)))
+        for run in begun.branches:
+            held.append((started, run))
             echo(f"  {run.name}: held; queued once that checkpoint is ready")
         if not started.left:
             finish(started)
@@ -248,18 +245,19 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     def release(give_up: bool = False) -> None:
         """Queue each held branch whose checkpoint is ready, after the queued runs of its sweep and those before
         it; `give_up`: nothing else is left to run, so the rest end WAITING."""
+        ready = ready_branches([run for _, run in held], runs_root)
         for entry in list(held):
-            started, run, trunk = entry
-            if trunk_ready(trunk):
+            started, run = entry
+            if run in ready:
                 held.remove(entry)
                 at = sum(1 for queued, _ in queue if queued.index <= started.index)
                 queue.insert(at, (started, run))
-                echo(f"  {run.name} ({started.sweep.name}): its checkpoint is ready ({trunk.name}); queued")
+                echo(f"  {run.name} ({started.sweep.name}): its checkpoint is ready; queued")
             elif give_up:
                 held.remove(entry)
-                started.outcomes.append(RunOutcome(run.name, "WAITING", error=f"{WAITS_FOR_TRUNK} {trunk}"))
+                started.outcomes.append(waiting_outcome(run, runs_root))
                 started.left -= 1
-                echo(f"  {run.name} ({started.sweep.name}): still {WAITS_FOR_TRUNK} {trunk}")
+                echo(f"  {run.name} ({started.sweep.name}): still {started.outcomes[-1].error}")
                 if not started.left:
                     finish(started)
 

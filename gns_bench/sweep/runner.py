@@ -469,12 +469,25 @@ def format_plan(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dic
 @dataclass
 class SweepStart:
     """What a sweep has before anything trains (`start_sweep`): the outcomes of the runs it needs not train
-    (finished, shared, stress-tested, evaluated again, waiting), the runs still to train in its order, and
-    `keep`, which records a run that ends into the sweep's run summary."""
+    (finished, shared, stress-tested, evaluated again, waiting for another kind of machine), the runs still to
+    train in its order, the branches whose checkpoint is not ready yet (trainable once it is: their caller
+    trains them then, or records them with `waiting_outcome`), and `keep`, which records a run that ends into
+    the sweep's run summary."""
 
     outcomes: list[RunOutcome]
     pending: list[PlannedRun]
     keep: Callable[[RunOutcome | str], None]
+    branches: list[PlannedRun] = dataclasses.field(default_factory=list)
+
+
+def waiting_outcome(run: PlannedRun, runs_root: Path) -> RunOutcome:
+    """A branch's outcome while the checkpoint it starts from is not ready."""
+    return RunOutcome(run.name, "WAITING", error=f"{WAITS_FOR_TRUNK} {branch_checkpoint(run.config, runs_root)}")
+
+
+def ready_branches(branches: list[PlannedRun], runs_root: Path) -> list[PlannedRun]:
+    """Those of `branches` whose checkpoint is ready now (`trunk_ready`)."""
+    return [run for run in branches if trunk_ready(branch_checkpoint(run.config, runs_root))]
 
 
 def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
@@ -499,6 +512,7 @@ def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), 
     done_again = {o.name for o in again}
     outcomes = again + [RunOutcome(r.name, "SKIPPED") for r in runs
                         if status[r.name] in (FINISHED, SUMMARISED) and r.name not in done_again]
+    branches = [r for r in runs if status[r.name].startswith(WAITS_FOR_TRUNK)]
     waiting = [RunOutcome(r.name, "WAITING", error=status[r.name]) for r in runs
                if status[r.name].startswith((cpu_kinds.WAITS, WAITS_FOR_TRUNK))]
     selected = f" (--only {' '.join(only)})" if only else ""
@@ -510,9 +524,11 @@ def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), 
     for outcome in waiting:
         echo(f"  {outcome.name}: {outcome.error}"
              + ("; --any-cpu-kind trains it here" if outcome.error.startswith(cpu_kinds.WAITS) else ""))
-    outcomes += waiting
+    outcomes += [o for o in waiting if not o.error.startswith(WAITS_FOR_TRUNK)]
     if not train:
         pending = []
+        outcomes += [o for o in waiting if o.error.startswith(WAITS_FOR_TRUNK)]
+        branches = []
 
     def keep(outcome: RunOutcome | str) -> None:  # each finished run into the sweep's summary as it ends
         if reports_root is not None and isinstance(outcome, RunOutcome) and outcome.status in RECORDED:
@@ -534,7 +550,7 @@ def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), 
             echo(f"  {run.name}: {status[run.name]} (run {source.run_id}{where}), recorded without training")
             outcomes.append(share_run(run, key, source))
             keep(outcomes[-1])
-    return SweepStart(outcomes, pending, keep)
+    return SweepStart(outcomes, pending, keep, branches)
 
 
 def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), runs_root: Path = Path("runs"),
@@ -553,7 +569,9 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     with the finished runs MLflow holds that the summary lacks (none: MLflow only). `after_run(outcome,
     runs_left)`: called as each run the local launcher trains one at a time ends, with how many of this
     call's runs are still to train. A run held to another kind of machine (`sweep/cpu_kinds.py`) is not
-    trained here (outcome WAITING, saying which kind), unless `any_kind`."""
+    trained here (outcome WAITING, saying which kind), unless `any_kind`. A branch whose checkpoint is not
+    ready (`train.init_from`) trains after the rest once one of them has made it ready (a trunk and its
+    branches in one sweep: one call), or ends WAITING."""
     if parallel < 1:
         raise ValueError(f"parallel: expected at least 1 run at a time, got {parallel}")
     if parallel > 1 and launcher != "local":
@@ -561,36 +579,47 @@ def run_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), ru
     begun = start_sweep(sweep, tier, data_root=data_root, runs_root=runs_root, progress=progress, share=share,
                         only=only, train=train, reevaluate_reason=reevaluate_reason, reports_root=reports_root,
                         echo=echo, any_kind=any_kind)
-    outcomes, pending, keep = begun.outcomes, begun.pending, begun.keep
-    if launcher == "local" and parallel > 1:
-        from gns_bench.sweep.launchers import run_parallel
+    outcomes, keep = begun.outcomes, begun.keep
 
-        echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores; "
-             f"each run's progress in {run_dir(runs_root, pending[0]).parent}/<run>/{PROGRESS_LOG}"
-             if pending else "  nothing to run")
-        job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
-                      tracking_uri=tracking.tracking_uri(), progress=False, progress_log=progress)
-        results = run_parallel(job, pending, parallel, echo, on_result=keep)
-        outcomes += [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
-    elif launcher == "local":
-        for index, run in enumerate(pending, 1):
-            echo(f"[{index}/{len(pending)}] {run.name}")
-            outcome = execute_run(run, data_root, runs_root, progress=progress)
-            if outcome.status == "FAILED":
-                echo(f"  FAILED: {outcome.error}")
-            outcomes.append(outcome)
-            keep(outcome)
-            if after_run is not None:
-                after_run(outcome, len(pending) - index)
-    elif launcher == "submitit":
-        from gns_bench.sweep.launchers import submit
+    def train_runs(pending: list[PlannedRun]) -> list[RunOutcome]:
+        if launcher == "local" and parallel > 1:
+            from gns_bench.sweep.launchers import run_parallel
 
-        job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
-                      tracking_uri=tracking.tracking_uri(), progress=False)
-        results = submit(job, pending, runs_root / sweep.name / tier / "submitit", cluster)
-        outcomes += [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
-        for result in results:
-            keep(result)
-    else:
+            echo(f"  {min(parallel, len(pending))} runs at a time, each in its own process on its own cores; "
+                 f"each run's progress in {run_dir(runs_root, pending[0]).parent}/<run>/{PROGRESS_LOG}"
+                 if pending else "  nothing to run")
+            job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
+                          tracking_uri=tracking.tracking_uri(), progress=False, progress_log=progress)
+            results = run_parallel(job, pending, parallel, echo, on_result=keep)
+            return [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
+        if launcher == "local":
+            trained = []
+            for index, run in enumerate(pending, 1):
+                echo(f"[{index}/{len(pending)}] {run.name}")
+                outcome = execute_run(run, data_root, runs_root, progress=progress)
+                if outcome.status == "FAILED":
+                    echo(f"  FAILED: {outcome.error}")
+                trained.append(outcome)
+                keep(outcome)
+                if after_run is not None:
+                    after_run(outcome, len(pending) - index)
+            return trained
+        if launcher == "submitit":
+            from gns_bench.sweep.launchers import submit
+
+            job = partial(execute_run, data_root=data_root.resolve(), runs_root=runs_root.resolve(),
+                          tracking_uri=tracking.tracking_uri(), progress=False)
+            results = submit(job, pending, runs_root / sweep.name / tier / "submitit", cluster)
+            for result in results:
+                keep(result)
+            return [as_outcome(run, result) for run, result in zip(pending, results, strict=True)]
         raise ValueError(f"unknown launcher {launcher!r}; expected 'local' or 'submitit'")
+
+    outcomes += train_runs(begun.pending)
+    branches = begun.branches
+    while ready := ready_branches(branches, runs_root):  # a trunk this call trained: its branches now
+        echo(f"  {len(ready)} branch(es) whose checkpoint is now ready: {', '.join(r.name for r in ready)}")
+        branches = [run for run in branches if run not in ready]
+        outcomes += train_runs(ready)
+    outcomes += [waiting_outcome(run, runs_root) for run in branches]
     return outcomes

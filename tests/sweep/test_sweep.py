@@ -874,7 +874,8 @@ learning_rate_anneal_steps = 5
 def test_a_branch_waits_for_its_trunks_checkpoint_then_starts_from_it(sweeps: Path, tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """A candidate that starts from another run's kept checkpoint (`train.init_from = "runs:..."`, under the
-    runs root wherever that is, so its key is the same on every machine) waits until that checkpoint exists."""
+    runs root wherever that is, so its key is the same on every machine) waits until that checkpoint exists,
+    and trains in the same call as the run that writes it, after it."""
     from gns_bench.sweep.runner import dataset_run_key
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -882,14 +883,15 @@ def test_a_branch_waits_for_its_trunks_checkpoint_then_starts_from_it(sweeps: Pa
     path = sweeps / "studies" / "branches.toml"
     path.write_text(BRANCHES)
     sweep = load_sweep(path)
-    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
-    first = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
-    assert first["candidate=trunk-seed0"].status == "FINISHED"
-    waiting = first["candidate=branch-seed0"]
+    said: list[str] = []
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=said.append)
+    [waiting] = run_sweep(sweep, "smoke", only=["candidate=branch-*"], **roots)  # its trunk not trained
     assert waiting.status == "WAITING" and waiting.error.endswith("candidate=trunk-seed0/checkpoint-10.pt"), waiting
     second = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
+    assert second["candidate=trunk-seed0"].status == "FINISHED"
     branch = second["candidate=branch-seed0"]
     assert branch.status == "FINISHED", branch.error
+    assert said.index("[1/1] candidate=trunk-seed0") < said.index("[1/1] candidate=branch-seed0"), said
     record = tracking.get_run(branch.run_id)
     trunk_checkpoint = tmp_path / "runs" / "study-branches" / "smoke" / "candidate=trunk-seed0" / "checkpoint-10.pt"
     assert record.params["train.init_from"] == str(trunk_checkpoint)  # what it started from, logged whole
