@@ -14,6 +14,14 @@ from gns_bench.report.reference import paper_training_steps
 
 MISSING = "**missing**"
 
+# The physical diagnostics every evaluation logs (`evaluate/diagnostics.py`), with their column headings, in the
+# order the domain table and the study tables show them.
+DIAGNOSTIC_COLUMNS = (("gravity_ratio", "gravity ratio, one step"), ("held_gravity_ratio", "held still"),
+                      ("rollout_gravity_ratio", "gravity ratio, rollout"),
+                      ("com_fall_ratio", "centre-of-mass fall, ours / truth"),
+                      ("wall_pass_fraction", "particles through a wall"),
+                      ("steps_before_trip", "steps before a monitor's first trip"))
+
 
 def fmt(value: float) -> str:
     return "—" if value is None or not math.isfinite(value) else f"{value:.3g}"

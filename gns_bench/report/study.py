@@ -18,6 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import NullFormatter  # noqa: E402
 
 from gns_bench.report.cells import (  # noqa: E402
+    DIAGNOSTIC_COLUMNS,
     MISSING,
     fmt,
     machines,
@@ -112,6 +113,25 @@ def candidates_table(groups: dict[str, list[RunRow]]) -> list[str]:
                  machines(done) or "—", run_ids_cell(group)]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+def diagnostics_table(groups: dict[str, list[RunRow]]) -> list[str]:
+    """Each candidate's physical diagnostics on the test split (the domain table's columns): the mean over its
+    seeds, each seed's value beside it where there are several; candidates with no finished run left out."""
+    header = "| candidate | seeds | " + " | ".join(title for _, title in DIAGNOSTIC_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (header.count(" | ") + 1)]
+    for name, group in groups.items():
+        done = [r for r in group if r.ok]
+        if not done:
+            continue
+        cells = [f"`{name}`", str(len(done))]
+        for metric, _ in DIAGNOSTIC_COLUMNS:
+            values = [r.metric(metric) for r in done]
+            known = len(values) > 1 and any(math.isfinite(v) for v in values)  # not logged by older runs: "—"
+            seeds = f" ({' / '.join(fmt(v) for v in values)})" if known else ""
+            cells.append(fmt(mean_std(values)[0]) + seeds)
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines if len(lines) > 2 else []
 
 
 def _panels_figure(groups: dict[str, list[RunRow]], panels: list[tuple[str, str]],
@@ -383,6 +403,14 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
              "clipped, evaluation excluded).", "", *candidates_table(groups), ""]
     if compare:
         lines += [f"**Winner.** {sentence}", ""]
+    if diagnostics := diagnostics_table(groups):
+        lines += ["The same test trajectories' physical diagnostics, as the domain table gives them "
+                  "(`gns_bench/evaluate/diagnostics.py`), mean over seeds with each seed's value in brackets: the "
+                  "predicted acceleration of particles the truth has in free fall over g, on true windows, held "
+                  "still (every input velocity 0: a block at rest in mid-air let go) and along the model's own "
+                  "rollout; the centre of mass's fall over the truth's; the share of particles through a wall; "
+                  "the first step a monitor tripped. 1 is the truth for the ratios, 0 a block that hovers.", "",
+                  *diagnostics, ""]
     figure = curves_figure(groups, out_dir / "error_vs_time.png", rollout_steps)
     if figure is not None:
         lines += ["## Error against training time", "",
