@@ -468,6 +468,8 @@ def summary_lines(metrics: dict[str, float]) -> list[str]:
 
 def physics_lines(metrics: dict[str, float]) -> list[str]:
     """The physical diagnostics, each against the truth's 1 (gns_bench/evaluate/diagnostics.py)."""
+    from gns_bench.evaluate.evaluate import HELD_FALL_STEPS
+
     nan = float("nan")
     one_step, along = metrics.get("gravity_ratio", nan), metrics.get("rollout_gravity_ratio", nan)
     held = metrics.get("held_gravity_ratio", nan)
@@ -478,6 +480,9 @@ def physics_lines(metrics: dict[str, float]) -> list[str]:
     if held == held:
         lines.append(f"held still          {held:.3g} of g for the same particles let go from rest in mid-air "
                      "(near 0: a block the rollout stops there stays)")
+    if (fall := metrics.get("held_fall_ratio", nan)) == fall:
+        lines.append(f"held, let go        falls {fall:.3g} of the fall at g over its first {HELD_FALL_STEPS} "
+                     "steps (1 = the truth's)")
     fall = metrics.get("com_fall_ratio", nan)
     if fall == fall:
         lines.append(f"centre of mass      fell {fall:.3g} of the truth's fall by the rollout's end")

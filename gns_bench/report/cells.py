@@ -17,6 +17,7 @@ MISSING = "**missing**"
 # The physical diagnostics every evaluation logs (`evaluate/diagnostics.py`), with their column headings, in the
 # order the domain table and the study tables show them.
 DIAGNOSTIC_COLUMNS = (("gravity_ratio", "gravity ratio, one step"), ("held_gravity_ratio", "held still"),
+                      ("held_fall_ratio", "held still, fall over 10 steps"),
                       ("rollout_gravity_ratio", "gravity ratio, rollout"),
                       ("com_fall_ratio", "centre-of-mass fall, ours / truth"),
                       ("wall_pass_fraction", "particles through a wall"),

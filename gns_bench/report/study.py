@@ -46,6 +46,7 @@ RATIOS = {"against_cv": ("rollout_mse", "baseline_cv_same_steps_mse"),
 # The physical diagnostics along training (gns_bench/evaluate/diagnostics.py), against steps: 1 is the truth's.
 DIAGNOSTIC_PANELS = (("gravity_ratio", "gravity ratio, one step on true windows"),
                      ("held_gravity_ratio", "gravity ratio, one step held still (velocities 0)"),
+                     ("held_fall_ratio", "held still and let go: fall over 10 steps / g's"),
                      ("rollout_gravity_ratio", "gravity ratio along the rollout"),
                      ("com_fall_ratio", "centre-of-mass fall, ours / truth"))
 DPI = 80
@@ -406,8 +407,9 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
     if diagnostics := diagnostics_table(groups):
         lines += ["The same test trajectories' physical diagnostics, as the domain table gives them "
                   "(`gns_bench/evaluate/diagnostics.py`), mean over seeds with each seed's value in brackets: the "
-                  "predicted acceleration of particles the truth has in free fall over g, on true windows, held "
-                  "still (every input velocity 0: a block at rest in mid-air let go) and along the model's own "
+                  "predicted acceleration of particles the truth has in free fall over g, on true windows and "
+                  "held still (every input velocity 0: a block at rest in mid-air let go); how far such a block "
+                  "falls in the model's first 10 steps over the fall at g; the gravity ratio along the model's own "
                   "rollout; the centre of mass's fall over the truth's; the share of particles through a wall; "
                   "the first step a monitor tripped. 1 is the truth for the ratios, 0 a block that hovers.", "",
                   *diagnostics, ""]

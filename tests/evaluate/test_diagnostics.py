@@ -91,7 +91,7 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
                           gravity=meta.gravity, walls=meta.walls)
     m = evaluation.metrics
     assert abs(m["gravity_ratio"]) < 1e-6 and abs(m["rollout_gravity_ratio"]) < 1e-6
-    assert abs(m["held_gravity_ratio"]) < 1e-6
+    assert abs(m["held_gravity_ratio"]) < 1e-6 and abs(m["held_fall_ratio"]) < 1e-6
     assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "steps_before_trip"} <= set(m)
     assert m["steps_before_trip"] <= m["rollout_steps"]
     # the same model with gravity as its mean acceleration falls freely: ratio 1 on free-falling particles
@@ -101,6 +101,7 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
     assert falling.metrics["gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
     assert falling.metrics["rollout_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
     assert falling.metrics["held_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
+    assert falling.metrics["held_fall_ratio"] == pytest.approx(1.0, abs=1e-3)  # g k(k+1)/2, integrated as the truth
 
 
 def test_held_still_tells_a_model_that_reads_g_from_the_velocity_history(tiny_dataset, monkeypatch):
@@ -109,7 +110,7 @@ def test_held_still_tells_a_model_that_reads_g_from_the_velocity_history(tiny_da
     tells it from one that has learned g itself (1 on both, above)."""
     from gns_bench.config import load_config, resolve_for_dataset
     from gns_bench.data.format import load_split, read_metadata
-    from gns_bench.evaluate.evaluate import held_gravity_ratio, one_step_gravity_ratio
+    from gns_bench.evaluate.evaluate import held_fall_ratio, held_gravity_ratio, one_step_gravity_ratio
     from gns_bench.train.checkpoints import build_simulator
 
     meta = read_metadata(tiny_dataset)
@@ -126,3 +127,33 @@ def test_held_still_tells_a_model_that_reads_g_from_the_velocity_history(tiny_da
     monkeypatch.setattr(simulator, "predict_next_position", from_history)
     assert one_step_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(1.0, abs=0.1)
     assert held_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(0.0, abs=1e-9)
+    assert held_fall_ratio(simulator, traj, meta.gravity) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_held_fall_tells_a_model_that_pushes_a_block_back_once_it_moves(tiny_dataset, monkeypatch):
+    """A model that gives g to material at rest and stops anything that moves (as a resting pile pushes back)
+    scores 1 on the one-step held-still probe, yet a block let go from rest falls only every other step: over
+    10 steps 5 g of the 55 g the truth falls (0.09). The rolled-out ratio sees what the first step hides."""
+    import torch
+
+    from gns_bench.config import load_config, resolve_for_dataset
+    from gns_bench.data.format import load_split, read_metadata
+    from gns_bench.evaluate.evaluate import held_fall_ratio, held_gravity_ratio
+    from gns_bench.train.checkpoints import build_simulator
+
+    meta = read_metadata(tiny_dataset)
+    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
+                                                    "model.message_passing_steps=1"]),
+                                 meta.default_connectivity_radius)
+    simulator = build_simulator(config, meta).eval()
+    traj = load_split(tiny_dataset, "test")[0]
+    g = torch.tensor(meta.gravity)
+
+    def pushes_back(window, *args, **kwargs):  # at rest: fall at g; moving: stop (acceleration -v)
+        v = window[:, -1] - window[:, -2]
+        still = (v.abs().amax(dim=1, keepdim=True) < 1e-12)
+        return window[:, -1] + v + torch.where(still, g.to(window.dtype), -v)
+
+    monkeypatch.setattr(simulator, "predict_next_position", pushes_back)
+    assert held_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(1.0, abs=1e-4)  # float32 positions
+    assert held_fall_ratio(simulator, traj, meta.gravity) == pytest.approx(5 / 55, abs=1e-4)
