@@ -104,21 +104,27 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
     assert falling.metrics["held_fall_ratio"] == pytest.approx(1.0, abs=1e-3)  # g k(k+1)/2, integrated as the truth
 
 
+def tiny_simulator(dataset):
+    """An untrained one-block GNS on the tiny dataset, its metadata and first test trajectory: the tests below
+    replace its prediction by a model of known behaviour."""
+    from gns_bench.config import load_config, resolve_for_dataset
+    from gns_bench.data.format import load_split, read_metadata
+    from gns_bench.train.checkpoints import build_simulator
+
+    meta = read_metadata(dataset)
+    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
+                                                    "model.message_passing_steps=1"]),
+                                 meta.default_connectivity_radius)
+    return build_simulator(config, meta).eval(), meta, load_split(dataset, "test")[0]
+
+
 def test_held_still_tells_a_model_that_reads_g_from_the_velocity_history(tiny_dataset, monkeypatch):
     """A model that extrapolates each particle's last acceleration from its own velocity history predicts g
     for a block in free fall on true windows, and nothing for the same block held still: the held-still ratio
     tells it from one that has learned g itself (1 on both, above)."""
-    from gns_bench.config import load_config, resolve_for_dataset
-    from gns_bench.data.format import load_split, read_metadata
     from gns_bench.evaluate.evaluate import held_fall_ratio, held_gravity_ratio, one_step_gravity_ratio
-    from gns_bench.train.checkpoints import build_simulator
 
-    meta = read_metadata(tiny_dataset)
-    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
-                                                    "model.message_passing_steps=1"]),
-                                 meta.default_connectivity_radius)
-    simulator = build_simulator(config, meta).eval()
-    traj = load_split(tiny_dataset, "test")[0]
+    simulator, meta, traj = tiny_simulator(tiny_dataset)
 
     def from_history(window, *args, **kwargs):  # p + v + (v - v_prev): the last acceleration again
         v, v_prev = window[:, -1] - window[:, -2], window[:, -2] - window[:, -3]
@@ -136,17 +142,9 @@ def test_held_fall_tells_a_model_that_pushes_a_block_back_once_it_moves(tiny_dat
     10 steps 5 g of the 55 g the truth falls (0.09). The rolled-out ratio sees what the first step hides."""
     import torch
 
-    from gns_bench.config import load_config, resolve_for_dataset
-    from gns_bench.data.format import load_split, read_metadata
     from gns_bench.evaluate.evaluate import held_fall_ratio, held_gravity_ratio
-    from gns_bench.train.checkpoints import build_simulator
 
-    meta = read_metadata(tiny_dataset)
-    config = resolve_for_dataset(load_config(None, ["model.latent_size=8", "model.mlp_hidden_size=8",
-                                                    "model.message_passing_steps=1"]),
-                                 meta.default_connectivity_radius)
-    simulator = build_simulator(config, meta).eval()
-    traj = load_split(tiny_dataset, "test")[0]
+    simulator, meta, traj = tiny_simulator(tiny_dataset)
     g = torch.tensor(meta.gravity)
 
     def pushes_back(window, *args, **kwargs):  # at rest: fall at g; moving: stop (acceleration -v)
