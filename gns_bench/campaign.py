@@ -182,7 +182,8 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
     or, where it lacks a dataset, the lane makes it (one lane at a time: a sweep lacking data while one is made
     waits for it, and the sweeps after it start meanwhile). Each sweep's report is written as its runs finish
     (`_report_partway`) and when its last one has (`_write_sweep_reports`). A run's progress goes to
-    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. A branch
+    `progress.log` in its run directory; a dataset's to `datasets.log` in the sweep's runs folder. A sweep
+    whose dataset a lane made starts once it is there, its runs queued ahead of later sweeps'. A branch
     whose checkpoint is not ready (`train.init_from`: a kept checkpoint not yet written, or a run's own
     checkpoint.pt before that run has finished) is held and queued, in the campaign's order, as soon as it is
     (looked at each minute and as each run ends), so a trunk and its branches run in one campaign; its sweep's
@@ -235,7 +236,8 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
             return
         started = _Started(index, path, sweep, begun.outcomes, begun.keep, len(begun.pending) + len(begun.branches))
-        queue.extend((started, run) for run in begun.pending)
+        at = sum(1 for queued, _ in queue if queued.index <= index)  # a sweep whose data came late: before later ones
+        queue[at:at] = [(started, run) for run in begun.pending]
         for run in begun.branches:
             held.append((started, run))
             echo(f"  {run.name}: held; queued once that checkpoint is ready")
@@ -293,7 +295,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
         while True:
             release()
             while len(flying) < parallel and (queue or upcoming):
-                if queue:
+                if queue and not (upcoming and upcoming[0][0] < queue[0][0].index):
                     started, run = queue.pop(0)
                     echo(f"  {run.name} ({started.sweep.name}) into a lane; progress: "
                          f"{run_dir(runs_root, run) / PROGRESS_LOG}")

@@ -346,3 +346,26 @@ def test_a_branch_on_a_runs_own_checkpoint_waits_until_that_run_has_finished(tmp
     assert not runner.trunk_ready(live)
     status["abc"] = "FINISHED"
     assert runner.trunk_ready(live)
+
+
+def test_a_sweep_whose_data_a_lane_made_runs_before_the_later_sweeps_queued_runs(sweeps: Path, tmp_path: Path,
+                                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The campaign's order holds across a dataset made in a lane: while a lane makes the first sweep's data,
+    the second sweep's runs start in the other; once the data is there, the first sweep's run takes the next
+    free lane, ahead of the second sweep's runs still queued."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'order.db'}")
+    (sweeps / "domains" / "one.toml").write_text("dataset_seed = 1\n" + SWEEP.format(name="first", steps=1))
+    (sweeps / "domains" / "two.toml").write_text(
+        SWEEP.format(name="second", steps=2) + "\n[tiers.smoke]\nseeds = [0, 1, 2, 3, 4, 5]\n")
+    ensure_dataset("tiny", "smoke", 0, tmp_path / "data", progress=False)  # the second sweep's; the first's is made
+    path = sweeps / "campaigns" / "c.toml"
+    path.write_text('sweeps = ["domains/one.toml", "domains/two.toml"]\n')
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", reports_root=tmp_path / "reports")
+    said: list[str] = []
+    results = run_campaign(load_campaign(path, sweeps), "smoke", echo=said.append, sweeps_dir=sweeps, parallel=2,
+                           **roots)
+    assert [o.status for r in results for o in r.outcomes] == ["FINISHED"] * 7, said
+    lanes = [line for line in said if "into a lane" in line]
+    first = next(i for i, line in enumerate(lanes) if "(domain-one)" in line)
+    assert "(domain-two)" in lanes[0], said  # no lane idled while the data was made
+    assert any("(domain-two)" in line for line in lanes[first + 1:]), said  # and the order held once it was
