@@ -348,8 +348,8 @@ def test_a_branch_on_a_runs_own_checkpoint_waits_until_that_run_has_finished(tmp
     assert runner.trunk_ready(live)
 
 
-def test_a_sweep_whose_data_a_lane_made_runs_before_the_later_sweeps_queued_runs(sweeps: Path, tmp_path: Path,
-                                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_sweep_whose_data_a_lane_made_runs_before_later_sweeps_queued_runs(sweeps: Path, tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """The campaign's order holds across a dataset made in a lane: while a lane makes the first sweep's data,
     the second sweep's runs start in the other; once the data is there, the first sweep's run takes the next
     free lane, ahead of the second sweep's runs still queued."""
