@@ -56,6 +56,11 @@ class ModelConfig:
     # The release gives every particle its clipped distances to the bounds (App. B.2); "walls_only" gives
     # them only where the dataset's metadata says the bounds are walls (FLUIDSHAKE's container moves).
     wall_features: Literal["always", "walls_only"] = "always"
+    # How far the wall distances reach, in multiples of R: d / R clipped to [-wall_range, wall_range]. The
+    # release's 1 suffices where a solver's wall acts within R of the bound; an MPM grid's wall acts on a
+    # particle from 1.5 cells away (the quadratic B-spline's reach), 1.6 R at grid 64, where a clip at R hides
+    # the floor from a material that stops before it reaches R (reports/NOTES.md, the floor out of sight).
+    wall_range: float = 1.0
     global_latent: bool = False  # a global latent updated per GN block (ablation, App. C.1)
     gravity_bias: bool = False  # add the dataset's known gravity to the decoder output (ablation)
     linear_encoder_decoder: bool = False  # linear instead of MLP encoder/decoder (ablation)
@@ -72,6 +77,7 @@ class ModelConfig:
         _require(bool(self.architecture.strip()), "model.architecture", "must name a simulator")
         _require(self.message_passing_steps >= 0, "model.message_passing_steps", "must be >= 0")
         _require(self.latent_size > 0, "model.latent_size", "must be > 0")
+        _require(self.wall_range > 0, "model.wall_range", "must be > 0 (multiples of R)")
         _require(self.mlp_hidden_layers >= 0, "model.mlp_hidden_layers", "must be >= 0")
         _require(self.mlp_hidden_size > 0, "model.mlp_hidden_size", "must be > 0")
         _require(self.input_sequence_length >= 2, "model.input_sequence_length",

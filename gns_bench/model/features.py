@@ -31,12 +31,12 @@ def velocities(window: torch.Tensor) -> torch.Tensor:
 
 def node_features(window: torch.Tensor, norm: Normalisation, *, bounds: torch.Tensor, radius: float,
                   walls: bool = True, absolute_positions: bool = False,
-                  context: torch.Tensor | None = None) -> torch.Tensor:
+                  context: torch.Tensor | None = None, wall_range: float = 1.0) -> torch.Tensor:
     """Per-particle input features (the type embedding is appended by the network).
 
     - the C velocities, normalised by (vel_mean, vel_std'), flattened (Sec. 3.2, encoder input);
     - with walls (`bounds` [D, 2] are walls): distance to the lower and to the upper bound of every
-      dimension, divided by R and clipped to [-1, 1] (App. B.2);
+      dimension, divided by R and clipped to [-1, 1] (App. B.2), or to [-wall_range, wall_range];
     - for the absolute-position ablation (Sec. 5.4): the position itself, scaled to [0, 1] over the
       bounds (translation invariance is lost on purpose);
     - the global context, already normalised, per particle [N, C] (e.g. CONTINUOUS' friction angle).
@@ -48,7 +48,7 @@ def node_features(window: torch.Tensor, norm: Normalisation, *, bounds: torch.Te
     if walls:
         to_lower = (position - bounds[:, 0]) / radius
         to_upper = (bounds[:, 1] - position) / radius
-        parts.append(torch.clamp(torch.cat([to_lower, to_upper], dim=1), -1.0, 1.0))
+        parts.append(torch.clamp(torch.cat([to_lower, to_upper], dim=1), -wall_range, wall_range))
     if absolute_positions:
         parts.append((position - bounds[:, 0]) / (bounds[:, 1] - bounds[:, 0]))
     if context is not None:

@@ -183,7 +183,8 @@ class LearnedSimulator(nn.Module):
             global_context = features.normalise_context(context, norm)
             node_context = global_context.index_select(0, batch)
         x = features.node_features(window, norm, bounds=bounds, radius=self.radius, walls=self.use_walls,
-                                   absolute_positions=self.absolute, context=node_context)
+                                   absolute_positions=self.absolute, context=node_context,
+                                   wall_range=self.config.wall_range)
         if self.use_type_embedding:
             x = torch.cat([x, self.type_embedding(particle_type)], dim=1)
         e = (features.edge_features(window[:, -1], edge_index, self.radius, absolute_positions=self.absolute,

@@ -169,6 +169,26 @@ def test_break_rollout_start_never_seen(tmp_path: Path):
     assert sum(fall < 0.1 for fall in falls) == 0 and sum(0.8 <= fall <= 1.25 for fall in falls) >= 6, falls
 
 
+@pytest.mark.slow
+def test_break_floor_acting_beyond_the_wall_features_reach(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """The floor pushes from 2.2 R (an MPM grid's wall reaches 1.5 cells; GOOP's cpu data decelerates and rests
+    at 1-2 R, reports/NOTES.md): with wall distances clipped at R a resting block looks like one released at
+    rest in the air, and the checks fail; clipped at 3 R (`model.wall_range`) the model sees the floor where
+    it acts, and they pass."""
+    contact = 2.2 * scenes.RADIUS
+    monkeypatch.setattr(scenes, "CONTACT", contact)
+    monkeypatch.setattr(scenes, "REST_GAP", contact - abs(scenes.GRAVITY[1]) / scenes.STIFFNESS)
+    data = checks.dataset(tmp_path / "data")
+    clipped = checks.trained(data, tmp_path / "clipped", train=BATCH)
+    failures = support_failures(clipped, "rest", REST_DEVIATION) + support_failures(clipped, "landing",
+                                                                                     LANDED_DEVIATION)
+    print("wall distances clipped at R:", failures)
+    assert failures, "the floor out of sight did not show"
+    reach = checks.trained(data, tmp_path / "reach", train=BATCH, model={"wall_range": 3.0})
+    assert support_failures(reach, "rest", REST_DEVIATION) + support_failures(reach, "landing",
+                                                                              LANDED_DEVIATION) == []
+
+
 def held_then_let_go(traj, held: int = 5):
     """`traj` (blocks released at rest at its first frame) with `held` more frames at rest before it: a
     rollout's whole input window of 6 frames is the blocks at rest in mid-air, then they fall from rest."""

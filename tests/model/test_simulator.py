@@ -277,10 +277,27 @@ def test_node_and_edge_features_closed_form() -> None:
     torch.testing.assert_close(x[0, 10:], torch.tensor([1.0, 1.0, 1.0, 1.0]))
     assert float(x[1, 13]) == pytest.approx(0.2, abs=1e-5)  # at (0.5, 1.98): 0.02 below the top wall, 0.2 R
     assert float(x[2, 12]) == pytest.approx(-0.05, abs=1e-5)  # at (1.005, 0.52): past the right wall, -0.05 R
+    # a longer reach (model.wall_range = 3): the same d / R, clipped at 3 R instead
+    x3 = node_features(window, norm, bounds=bounds, radius=radius, wall_range=3.0)
+    torch.testing.assert_close(x3[:, 10:], torch.cat([lower, upper], 1).clamp(-3, 3))
+    torch.testing.assert_close(x3[0, 10:], torch.tensor([1.0, 3.0, 3.0, 3.0]))  # 1 R from the left wall still 1
     edges = torch.tensor([[0, 2], [1, 0]])  # senders, receivers: 0 -> 1 and 2 -> 0
     e = edge_features(last, edges, radius, bounds=bounds)
     displacement = torch.stack([last[0] - last[1], last[2] - last[0]]) / radius
     torch.testing.assert_close(e, torch.cat([displacement, displacement.norm(dim=1, keepdim=True)], 1))
+
+
+def test_the_simulator_hands_its_wall_range_to_the_features() -> None:
+    """model.wall_range reaches the encoder's input: a particle 2 R above the floor sees it at 3 R, not at R."""
+    win, types = window()
+    win = win.clone()
+    win[0] = torch.tensor([0.5, 0.4])  # at rest, 0.4 = 2 R above the floor (R = 0.2)
+    features = {}
+    for reach in (1.0, 3.0):
+        sim = LearnedSimulator(ModelConfig(**SMALL, wall_range=reach), metadata(walls=True), 3e-4)
+        features[reach] = sim.graph_inputs(win, types).nodes[0, 10:14]  # after 5 velocities: lower x, y; upper x, y
+    torch.testing.assert_close(features[1.0], torch.tensor([1.0, 1.0, 1.0, 1.0]))
+    torch.testing.assert_close(features[3.0], torch.tensor([2.5, 2.0, 2.5, 3.0]))
 
 
 SKIP_VARIANTS = [{}, {"global_latent": True}, {"aggregate": "updated_edges"}, {"shared_processor": True},
