@@ -174,7 +174,8 @@ def test_break_floor_acting_beyond_the_wall_features_reach(tmp_path: Path, monke
     """The floor pushes from 2.2 R (an MPM grid's wall reaches 1.5 cells; GOOP's cpu data decelerates and rests
     at 1-2 R, reports/NOTES.md): with wall distances clipped at R a resting block looks like one released at
     rest in the air, and the checks fail; clipped at 3 R (`model.wall_range`) the model sees the floor where
-    it acts, and they pass."""
+    it acts, and they pass. Measured (one thread, 8.6 min for both): clipped at R, 20 particles of the landing
+    blocks passed the floor and strayed 266 R from the truth; at 3 R the resting and landing blocks passed."""
     contact = 2.2 * scenes.RADIUS
     monkeypatch.setattr(scenes, "CONTACT", contact)
     monkeypatch.setattr(scenes, "REST_GAP", contact - abs(scenes.GRAVITY[1]) / scenes.STIFFNESS)
