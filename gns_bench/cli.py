@@ -488,7 +488,9 @@ def physics_lines(metrics: dict[str, float]) -> list[str]:
         lines.append(f"centre of mass      fell {fall:.3g} of the truth's fall by the rollout's end")
     through = metrics.get("wall_pass_fraction", nan)
     if through == through:
-        lines.append(f"through a wall      {100 * through:.3g}% of moving particles (the truth: none)")
+        depth = metrics.get("wall_depth", nan)
+        lines.append(f"through a wall      {100 * through:.3g}% of moving particles (the truth: none)"
+                     + (f", the deepest {depth:.3g} R beyond it" if depth == depth and through > 0 else ""))
     return lines
 
 

@@ -9,7 +9,9 @@ directly:
   acceleration is g within `FREE_FALL_TOLERANCE` on three frames in a row: a block before its first contact;
   `data/free_fall.py`),
   the mean predicted acceleration along g over the true one. 1 is gravity learned, 0 a hovering block.
-- `wall_pass_fraction`: the share of moving particles that leave the bounds (pass a wall) at some step.
+- `wall_pass_fraction`: the share of moving particles that leave the bounds (pass a wall) at some step, and
+  `wall_depth`, the furthest any of them gets beyond a wall, in R: a rollout that dips past the floor and is
+  pushed back reads a fraction of R, material that falls through the floor and on reads tens.
 - the centre of mass of the moving particles against the truth's: its mean distance from the truth's, and
   `com_fall_ratio`, the predicted displacement of the centre of mass along g over the truth's over the rollout.
 
@@ -58,6 +60,18 @@ def wall_pass_fraction(predicted: np.ndarray, bounds: Sequence[Sequence[float]],
     b = np.asarray(bounds, dtype=np.float64)
     outside = ((predicted < b[:, 0]) | (predicted > b[:, 1])).any(axis=-1).any(axis=0)  # [N]
     return float(outside[moving].mean())
+
+
+def wall_depth(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving: np.ndarray,
+               radius: float) -> float:
+    """The furthest a moving particle [N] gets beyond `bounds` [D, 2] at any predicted step [K, N, D], in units
+    of `radius` (0 when none leaves)."""
+    if predicted.shape[0] == 0 or not moving.any():
+        return float("nan")
+    b = np.asarray(bounds, dtype=np.float64)
+    p = np.asarray(predicted, dtype=np.float64)[:, moving]
+    beyond = np.maximum(np.maximum(b[:, 0] - p, p - b[:, 1]), 0.0)  # [K, M, D]
+    return float(beyond.max() / radius)
 
 
 def centre_of_mass(frames: np.ndarray, moving: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ GRAVITY_WINDOWS = 16  # true windows per trajectory on which `one_step_gravity_r
 # Per-trajectory values that are NaN where they do not apply (no particle in free fall, no walls, the truth
 # barely falls): their summary is the mean over the trajectories where they do.
 NAN_WHERE_NOT_APPLICABLE = ("gravity_ratio", "held_gravity_ratio", "held_fall_ratio", "rollout_gravity_ratio",
-                            "wall_pass_fraction", "com_fall_ratio")
+                            "wall_pass_fraction", "wall_depth", "com_fall_ratio")
 HELD_FALL_STEPS = 10  # how long `held_fall_ratio` rolls out a block let go from rest
 HELD_FALL_WINDOWS = 4  # and from how many frames of each trajectory
 
@@ -244,14 +244,16 @@ def held_fall_ratio(simulator: LearnedSimulator, trajectory: Trajectory, gravity
 
 def physical_diagnostics(result: RolloutResult, bounds: list[list[float]], walls: bool,
                          gravity: list[float] | None, radius: float) -> dict[str, float]:
-    """The rollout's `diagnostics`: gravity ratio along the rollout, the share of particles through a wall (with
-    walls), the centre of mass against the truth's (its fall counted where the truth falls at least R)."""
+    """The rollout's `diagnostics`: gravity ratio along the rollout, the share of particles through a wall and
+    how far beyond it they get (with walls), the centre of mass against the truth's (its fall counted where the
+    truth falls at least R)."""
     moving, nan = result.moving_mask, float("nan")
     k = min(result.predicted.shape[0], result.ground_truth.shape[0])
     predicted, truth = result.predicted[:k], result.ground_truth
     row = {"rollout_gravity_ratio": (diagnostics.rollout_gravity_ratio(result.initial_window, predicted, truth, moving,
                                                                       gravity) if gravity is not None else nan),
-           "wall_pass_fraction": diagnostics.wall_pass_fraction(predicted, bounds, moving) if walls else nan}
+           "wall_pass_fraction": diagnostics.wall_pass_fraction(predicted, bounds, moving) if walls else nan,
+           "wall_depth": diagnostics.wall_depth(predicted, bounds, moving, radius) if walls else nan}
     row.update(diagnostics.centre_of_mass_errors(result.initial_window, predicted, truth, moving, gravity, radius))
     return row
 

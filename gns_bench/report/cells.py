@@ -21,6 +21,7 @@ DIAGNOSTIC_COLUMNS = (("gravity_ratio", "gravity ratio, one step"), ("held_gravi
                       ("rollout_gravity_ratio", "gravity ratio, rollout"),
                       ("com_fall_ratio", "centre-of-mass fall, ours / truth"),
                       ("wall_pass_fraction", "particles through a wall"),
+                      ("wall_depth", "deepest beyond a wall (R)"),
                       ("steps_before_trip", "steps before a monitor's first trip"))
 
 

@@ -45,6 +45,16 @@ def test_wall_pass_fraction_counts_particles_that_leave_once():
     assert diagnostics.wall_pass_fraction(np.full((4, 4, 2), 0.5), BOUNDS, moving) == 0.0
 
 
+def test_wall_depth_is_the_furthest_step_past_a_wall_in_r():
+    frames = np.full((4, 4, 2), 0.5)
+    frames[2, 1] = [0.5, BOUNDS[1][0] - 0.03]  # 0.03 below the floor at one step
+    frames[3, 2] = [BOUNDS[0][1] + 0.01, 0.5]  # 0.01 past the right wall
+    frames[1, 3] = [0.5, BOUNDS[1][0] - 0.5]  # a kinematic particle far out: not counted
+    moving = np.array([True, True, True, False])
+    assert diagnostics.wall_depth(frames, BOUNDS, moving, 0.015) == pytest.approx(2.0)
+    assert diagnostics.wall_depth(np.full((4, 4, 2), 0.5), BOUNDS, moving, 0.015) == 0.0
+
+
 def test_centre_of_mass_fall_ratio_of_a_hovering_block_is_zero():
     truth = parabola(60)
     w = 6
@@ -92,7 +102,7 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
     m = evaluation.metrics
     assert abs(m["gravity_ratio"]) < 1e-6 and abs(m["rollout_gravity_ratio"]) < 1e-6
     assert abs(m["held_gravity_ratio"]) < 1e-6 and abs(m["held_fall_ratio"]) < 1e-6
-    assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "steps_before_trip"} <= set(m)
+    assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "wall_depth", "steps_before_trip"} <= set(m)
     assert m["steps_before_trip"] <= m["rollout_steps"]
     # the same model with gravity as its mean acceleration falls freely: ratio 1 on free-falling particles
     simulator.acc_mean.copy_(torch.tensor(meta.gravity))
