@@ -287,7 +287,8 @@ def search_sweep_runs(experiment: str, tier: str | None = None) -> list[RunRecor
 def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[str, Any],
              tags: dict[str, Any]) -> str:
     """A new FINISHED run in `experiment` that stands for `source` without retraining it: `source`'s params
-    (with `params` over them), latest metrics and tags (with `tags` over them, and `shared_from` = its run
+    (with `params` over them), latest metrics, the whole history of its `curve/` metrics (at their training
+    steps, so the copy's curves are the source's) and tags (with `tags` over them, and `shared_from` = its run
     id). Its artifacts stay with `source`, where `shared_from` leads. Returns the new run's id; a copy that
     fails half-way is ended FAILED, so it never looks complete."""
     from mlflow.entities import Metric, Param
@@ -301,8 +302,10 @@ def copy_run(source: RunRecord, experiment: str, run_name: str, *, params: dict[
     try:
         now = int(time.time() * 1000)
         merged = {**source.params, **as_param_strings(params)}
-        entities = [Param(k, v) for k, v in merged.items()] + [Metric(k, v, now, 0)
-                                                                 for k, v in source.metrics.items()]
+        metrics = [Metric(k, v, now, 0) for k, v in source.metrics.items() if not k.startswith(CURVE_PREFIX)]
+        for key in (k for k in source.metrics if k.startswith(CURVE_PREFIX)):
+            metrics += [Metric(key, value, now, step) for step, value in metric_history(source.run_id, key)]
+        entities = [Param(k, v) for k, v in merged.items()] + metrics
         for start in range(0, len(entities), PARAM_BATCH):
             chunk = entities[start:start + PARAM_BATCH]
             client.log_batch(run_id, params=[e for e in chunk if isinstance(e, Param)],

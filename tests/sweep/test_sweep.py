@@ -105,7 +105,8 @@ def test_smoke_sweep_end_to_end_skip_and_rerun(sweeps: Path, tmp_path: Path) -> 
 def test_a_run_another_sweep_trained_is_shared_not_retrained(sweeps: Path, tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """An ablation's default point is the domain sweep's run: same config, same data, same key."""
-    own = GRID.replace("learning_rate = 1e-3", "learning_rate = 2e-3")  # keys no other test trains
+    own = GRID.replace("learning_rate = 1e-3", "learning_rate = 2e-3\neval_every = 10\neval_trajectories = 1\n"
+                       "eval_rollout_steps = 5")  # keys no other test trains; a curve at steps 0, 10 and 20
     base_path, abl_path = sweeps / "tests" / "base.toml", sweeps / "tests" / "abl.toml"
     base_path.write_text(own.replace('"train.noise_std" = [0.0, 3e-4]\n', "").replace("[1, 2]", "[3]"))
     abl_path.write_text(own.replace('"model.message_passing_steps" = [1, 2]\n', "")
@@ -128,6 +129,10 @@ def test_a_run_another_sweep_trained_is_shared_not_retrained(sweeps: Path, tmp_p
     assert copy.data.tags["sweep"] == "test-abl" and copy.data.tags["axes"] == "train.noise_std"
     assert copy.data.params["sweep.name"] == "test-abl" and copy.data.params["model.message_passing_steps"] == "3"
     assert copy.data.metrics["test/rollout_mse"] == trained.data.metrics["test/rollout_mse"]
+    client = mlflow.tracking.MlflowClient()
+    curve = [(m.step, m.value) for m in client.get_metric_history(source.run_id, "curve/rollout_mse")]
+    assert [step for step, _ in curve] == [0, 10, 20]  # the copy carries the curve at its training steps
+    assert [(m.step, m.value) for m in client.get_metric_history(copy.info.run_id, "curve/rollout_mse")] == curve
     assert not (roots["runs_root"] / "test-abl" / "smoke" / "noise_std=0.0003-seed0").exists()  # nothing trained
     assert [o.status for o in run_sweep(abl, "smoke", **roots)] == ["SKIPPED", "SKIPPED"]
 
