@@ -273,6 +273,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
     step, earlier_wall_time, speed, resumed_window = 0, 0.0, None, []
+    curve_step = 0  # the last step whose curve point (train.eval_every) was logged
     start_from = (checkpoint_path if resume and checkpoint_path.exists()
                   else Path(tc.init_from) if tc.init_from and not checkpoint_path.exists() else None)
     if start_from is not None:  # a resume, or a branch from another run's checkpoint
@@ -287,6 +288,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             speed = autotune.SpeedSettings(**saved["speed"])
         # the losses since the last logged point, so the next point averages the same steps as without a stop
         resumed_window = [float(v) for v in saved.get("log_window", [])]
+        curve_step = int(saved.get("curve_step", step))  # a checkpoint from before the field: taken as logged
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
     if speed is None:
@@ -310,24 +312,26 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         save_checkpoint(path, {
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
-            "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed), "log_window": list(window_losses)})
+            "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed), "log_window": list(window_losses),
+            "curve_step": curve_step})
 
     def evaluate_now(at_step: int) -> None:
-        nonlocal paused
+        nonlocal paused, curve_step
         if on_eval is None or not group.is_main:
             return
         seconds, began = clock.total, time.perf_counter()
         snapshot = build_simulator(config, metadata).to(device)  # uncompiled, whatever trains
         snapshot.load_state_dict(simulator.state_dict())
         on_eval(snapshot.eval(), at_step, seconds)
+        curve_step = at_step
         paused += time.perf_counter() - began
 
     start_step, losses, window_losses = step, [], resumed_window
     bar = progress_bar(total=tc.steps, initial=step, disable=not progress, unit="step", dynamic_ncols=True,
                desc="train")
     evaluating = on_eval is not None and tc.eval_every > 0
-    if evaluating and step == 0:
-        evaluate_now(0)
+    if evaluating and (step == 0 or (curve_step < step and (step % tc.eval_every == 0 or step >= tc.steps))):
+        evaluate_now(step)  # a fresh run's first point, or the point a stop cut short (its checkpoint came first)
     simulator.train()
     try:
         while step < tc.steps and (stop_after is None or step - start_step < stop_after):

@@ -186,6 +186,33 @@ def test_time_budget_and_curve_evaluation(tiny_dataset: Path, tmp_path: Path) ->
     assert seconds == sorted(seconds) and seconds[-1] <= result.wall_time_s + 1e-6
 
 
+def test_a_curve_point_cut_short_by_a_stop_is_evaluated_on_resume(tiny_dataset: Path, tmp_path: Path) -> None:
+    """The checkpoint at a curve step is written before its evaluation: a run stopped during that evaluation
+    resumes at the step and evaluates it then, the last step's point included (nothing is left to train)."""
+    from gns_bench.train.loop import train
+
+    config = load_config(None, QUICK + ["train.steps=20", "train.eval_every=10"])
+    points: list[int] = []
+
+    def stopped_at(when: int):
+        def on_eval(simulator, step: int, seconds: float) -> None:
+            if step == when and -when not in points:
+                points.append(-step)  # begun, not logged
+                raise KeyboardInterrupt
+            points.append(step)
+        return on_eval
+
+    for when in (10, 20):
+        points.clear()
+        out = tmp_path / f"stop{when}"
+        with pytest.raises(KeyboardInterrupt):
+            train(config, tiny_dataset, out, progress=False, on_eval=stopped_at(when))
+        train(config, tiny_dataset, out, resume=True, progress=False, on_eval=stopped_at(when))
+        assert [p for p in points if p >= 0] == [0, 10, 20], (when, points)
+        train(config, tiny_dataset, out, resume=True, progress=False, on_eval=stopped_at(when))
+        assert [p for p in points if p >= 0] == [0, 10, 20], (when, points)  # a finished run evaluates nothing
+
+
 def test_step_clock_counts_a_stall_as_a_few_typical_steps() -> None:
     """A run stopped with SIGSTOP mid-step (or stalled by another job) must not spend its time budget."""
     from gns_bench.train.loop import StepClock
