@@ -57,9 +57,10 @@ class ModelConfig:
     # them only where the dataset's metadata says the bounds are walls (FLUIDSHAKE's container moves).
     wall_features: Literal["always", "walls_only"] = "always"
     # How far the wall distances reach, in multiples of R: d / R clipped to [-wall_range, wall_range]. The
-    # release's 1 suffices where a solver's wall acts within R of the bound; an MPM grid's wall acts on a
-    # particle from 1.5 cells away (the quadratic B-spline's reach), 1.6 R at grid 64, where a clip at R hides
-    # the floor from a material that stops before it reaches R (reports/NOTES.md, the floor out of sight).
+    # release's 1 suffices where a solver's wall acts within R of the bound; an MPM grid's wall nodes act on a
+    # particle 1.5 cells away (the quadratic B-spline's reach), about 2 R above the bound at grid 64, where a
+    # clip at R hides the floor from material that stops before it reaches R (reports/NOTES.md, the floor out
+    # of sight).
     wall_range: float = 1.0
     global_latent: bool = False  # a global latent updated per GN block (ablation, App. C.1)
     gravity_bias: bool = False  # add the dataset's known gravity to the decoder output (ablation)

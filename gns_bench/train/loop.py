@@ -288,7 +288,9 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             speed = autotune.SpeedSettings(**saved["speed"])
         # the losses since the last logged point, so the next point averages the same steps as without a stop
         resumed_window = [float(v) for v in saved.get("log_window", [])]
-        curve_step = int(saved.get("curve_step", step))  # a checkpoint from before the field: taken as logged
+        # a resume evaluates the curve point a stop cut short; a branch starts where its trunk's curve has it
+        # (a checkpoint from before the field: taken as logged)
+        curve_step = int(saved.get("curve_step", step)) if start_from == checkpoint_path else step
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
     if speed is None:
