@@ -209,6 +209,11 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
         except Exception as exc:  # noqa: BLE001 - a report that fails must not stop the lanes
             echo(f"  reports of {started.sweep.name} failed ({type(exc).__name__}: {exc}); written at the end")
 
+    def enqueue(started: _Started, runs: list[PlannedRun]) -> None:
+        """`runs` of `started`'s sweep into the queue after the queued runs of that sweep and those before it."""
+        at = sum(1 for queued, _ in queue if queued.index <= started.index)
+        queue[at:at] = [(started, run) for run in runs]
+
     def start(index: int, path: Path, lanes: Lanes) -> None:
         try:
             sweep = load_sweep(path, sweeps_dir)
@@ -236,8 +241,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             results[index] = SweepResult(path.stem, [], f"{type(exc).__name__}: {exc}")
             return
         started = _Started(index, path, sweep, begun.outcomes, begun.keep, len(begun.pending) + len(begun.branches))
-        at = sum(1 for queued, _ in queue if queued.index <= index)  # a sweep whose data came late: before later ones
-        queue[at:at] = [(started, run) for run in begun.pending]
+        enqueue(started, begun.pending)  # a sweep whose data came late: ahead of later sweeps' runs
         for run in begun.branches:
             held.append((started, run))
             echo(f"  {run.name}: held; queued once that checkpoint is ready")
@@ -252,8 +256,7 @@ def _run_in_lanes(campaign: Campaign, tier: str, *, data_root: Path, runs_root: 
             started, run = entry
             if run in ready:
                 held.remove(entry)
-                at = sum(1 for queued, _ in queue if queued.index <= started.index)
-                queue.insert(at, (started, run))
+                enqueue(started, [run])
                 echo(f"  {run.name} ({started.sweep.name}): its checkpoint is ready; queued")
             elif give_up:
                 held.remove(entry)

@@ -53,13 +53,18 @@ def rollout_gravity_ratio(initial_window: np.ndarray, predicted: np.ndarray, tru
     return gravity_ratio(ours, theirs[:k], falling, gravity)
 
 
+def _beyond_walls(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving: np.ndarray) -> np.ndarray:
+    """[K, M, D]: how far each moving particle is outside `bounds` [D, 2] along each dimension (0 inside)."""
+    b = np.asarray(bounds, dtype=np.float64)
+    p = np.asarray(predicted, dtype=np.float64)[:, moving]
+    return np.maximum(np.maximum(b[:, 0] - p, p - b[:, 1]), 0.0)
+
+
 def wall_pass_fraction(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving: np.ndarray) -> float:
     """The share of moving particles [N] outside `bounds` [D, 2] at any predicted step [K, N, D]."""
     if predicted.shape[0] == 0 or not moving.any():
         return float("nan")
-    b = np.asarray(bounds, dtype=np.float64)
-    outside = ((predicted < b[:, 0]) | (predicted > b[:, 1])).any(axis=-1).any(axis=0)  # [N]
-    return float(outside[moving].mean())
+    return float((_beyond_walls(predicted, bounds, moving) > 0).any(axis=-1).any(axis=0).mean())
 
 
 def wall_depth(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving: np.ndarray,
@@ -68,10 +73,7 @@ def wall_depth(predicted: np.ndarray, bounds: Sequence[Sequence[float]], moving:
     of `radius` (0 when none leaves)."""
     if predicted.shape[0] == 0 or not moving.any():
         return float("nan")
-    b = np.asarray(bounds, dtype=np.float64)
-    p = np.asarray(predicted, dtype=np.float64)[:, moving]
-    beyond = np.maximum(np.maximum(b[:, 0] - p, p - b[:, 1]), 0.0)  # [K, M, D]
-    return float(beyond.max() / radius)
+    return float(_beyond_walls(predicted, bounds, moving).max() / radius)
 
 
 def centre_of_mass(frames: np.ndarray, moving: np.ndarray) -> np.ndarray:
