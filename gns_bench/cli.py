@@ -483,6 +483,9 @@ def physics_lines(metrics: dict[str, float]) -> list[str]:
     if (fall := metrics.get("held_fall_ratio", nan)) == fall:
         lines.append(f"held, let go        falls {fall:.3g} of the fall at g over its first {HELD_FALL_STEPS} "
                      "steps (1 = the truth's)")
+    if (landing := metrics.get("landing_ratio", nan)) == landing:
+        lines.append(f"floor learned       {landing:.3g} of the floor's push on landing material, on true windows "
+                     "(1 = the truth's; near 0: it falls on through the floor)")
     fall = metrics.get("com_fall_ratio", nan)
     if fall == fall:
         lines.append(f"centre of mass      fell {fall:.3g} of the truth's fall by the rollout's end")

@@ -227,8 +227,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
 # `curve/train_seconds`): the paper's MSEs, the like-for-like baseline, and rollouts a monitor stopped.
 CURVE_METRICS = ("rollout_mse", "rollout_mse_moving", "baseline_cv_same_steps_mse", "one_step_mse", "mse_h1",
                  "mse_h10", "mse_h20", "mse_h100", "rollout_steps", "rollout_stopped", "gravity_ratio",
-                 "held_gravity_ratio", "held_fall_ratio", "rollout_gravity_ratio", "wall_pass_fraction",
-                 "wall_depth", "com_fall_ratio", "steps_before_trip",
+                 "held_gravity_ratio", "held_fall_ratio", "rollout_gravity_ratio", "landing_ratio",
+                 "wall_pass_fraction", "wall_depth", "com_fall_ratio", "steps_before_trip",
                  "rollout_mse_held", "baseline_cv_rollout_mse", "mse_h1_held", "mse_h10_held", "mse_h20_held",
                  "mse_h100_held")
 

@@ -32,7 +32,7 @@ GRAVITY_WINDOWS = 16  # true windows per trajectory on which `one_step_gravity_r
 # Per-trajectory values that are NaN where they do not apply (no particle in free fall, no walls, the truth
 # barely falls): their summary is the mean over the trajectories where they do.
 NAN_WHERE_NOT_APPLICABLE = ("gravity_ratio", "held_gravity_ratio", "held_fall_ratio", "rollout_gravity_ratio",
-                            "wall_pass_fraction", "wall_depth", "com_fall_ratio")
+                            "landing_ratio", "wall_pass_fraction", "wall_depth", "com_fall_ratio")
 HELD_FALL_STEPS = 10  # how long `held_fall_ratio` rolls out a block let go from rest
 HELD_FALL_WINDOWS = 4  # and from how many frames of each trajectory
 
@@ -159,12 +159,17 @@ def _free_fall_frames(simulator: LearnedSimulator, trajectory: Trajectory, gravi
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
     true_acc = free_fall.accelerations(trajectory.position)
     falling = free_fall.free_fall_mask(true_acc, gravity) & moving[None]
-    frames = [t for t in range(w - 1, trajectory.num_steps - 1) if falling[t - 1].any()]
-    if trajectory.has_inflow:
-        frames = []
+    frames = [] if trajectory.has_inflow else _frames_with(falling, w, max_windows)
+    return frames, true_acc, falling
+
+
+def _frames_with(mask: np.ndarray, w: int, max_windows: int) -> list[int]:
+    """Up to `max_windows` last input frames (evenly spread) of a window of `w` frames at which `mask` [T - 2, N]
+    (index i: frame i + 1) holds for some particle."""
+    frames = [t for t in range(w - 1, mask.shape[0] + 1) if mask[t - 1].any()]
     if len(frames) > max_windows:
         frames = [frames[i] for i in np.linspace(0, len(frames) - 1, max_windows).round().astype(int)]
-    return frames, true_acc, falling
+    return frames
 
 
 def _predicted_accelerations(simulator: LearnedSimulator, trajectories: list[Trajectory],
@@ -193,6 +198,27 @@ def one_step_gravity_ratio(simulator: LearnedSimulator, trajectory: Trajectory, 
     ours = _predicted_accelerations(simulator, [trajectory], [(0, t) for t in frames], device, precision)
     index = np.array(frames) - 1
     return diagnostics.gravity_ratio(ours, true_acc[index], falling[index], gravity)
+
+
+@torch.no_grad()
+def one_step_landing_ratio(simulator: LearnedSimulator, trajectory: Trajectory, gravity: list[float],
+                           bounds: list[list[float]], max_windows: int = GRAVITY_WINDOWS,
+                           device: torch.device | str = "cpu", precision: str = "fp32") -> float:
+    """`diagnostics.landing_ratio` of the model's one-step predictions on true windows: over the moving
+    particles the ground truth has land on the floor at a window's last frame (`diagnostics.landing_mask`), the
+    predicted push beyond gravity over the true one (up to `max_windows` windows, evenly spread over the frames
+    that have them). Near 0 a model lets landing material fall on: its rollouts pass the floor."""
+    if trajectory.has_inflow:  # a window holds only the particles present
+        return float("nan")
+    moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
+    landing = diagnostics.landing_mask(trajectory.position, bounds, gravity, simulator.radius, moving)
+    frames = _frames_with(landing, simulator.input_sequence_length, max_windows)
+    if not frames:
+        return float("nan")
+    ours = _predicted_accelerations(simulator, [trajectory], [(0, t) for t in frames], device, precision)
+    index = np.array(frames) - 1
+    return diagnostics.landing_ratio(ours, free_fall.accelerations(trajectory.position)[index], landing[index],
+                                     gravity)
 
 
 @torch.no_grad()
@@ -309,7 +335,8 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
 
     bounds: the scene's walls when they are not the training data's (a larger arena). gravity (per stored
     frame squared, the dataset's metadata) and walls (whether the bounds are walls) feed the physical
-    diagnostics (`physical_diagnostics`, `one_step_gravity_ratio`); without gravity its diagnostics are NaN."""
+    diagnostics (`physical_diagnostics`, `one_step_gravity_ratio`, `one_step_landing_ratio`); without gravity
+    its diagnostics are NaN."""
     if config.max_trajectories is not None:
         trajectories = trajectories[: config.max_trajectories]
     wanted = set(config.metrics)
@@ -355,8 +382,11 @@ def evaluate(simulator: LearnedSimulator, trajectories: list[Trajectory], config
                                 ("held_fall_ratio", held_fall_ratio)):
                 row[name] = (ratio(simulator, traj, gravity, device=device, precision=config.precision)
                              if gravity is not None else float("nan"))
-            row.update(physical_diagnostics(result, bounds if bounds is not None else simulator.bounds.tolist(),
-                                            walls, gravity, simulator.radius))
+            walls_at = bounds if bounds is not None else simulator.bounds.tolist()
+            row["landing_ratio"] = (one_step_landing_ratio(simulator, traj, gravity, walls_at, device=device,
+                                                           precision=config.precision)
+                                    if gravity is not None and walls else float("nan"))
+            row.update(physical_diagnostics(result, walls_at, walls, gravity, simulator.radius))
         if traj.step_context is not None:  # e.g. the friction angle: error against it (held-out intervals)
             row["context"] = float(traj.step_context[0, 0])
         row.update(metric_registry.compute_all(result))  # metrics of one's own (evaluate/registry.py)

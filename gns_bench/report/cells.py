@@ -19,6 +19,7 @@ MISSING = "**missing**"
 DIAGNOSTIC_COLUMNS = (("gravity_ratio", "gravity ratio, one step"), ("held_gravity_ratio", "held still"),
                       ("held_fall_ratio", "held still, fall over 10 steps"),
                       ("rollout_gravity_ratio", "gravity ratio, rollout"),
+                      ("landing_ratio", "floor's push, one step"),
                       ("com_fall_ratio", "centre-of-mass fall, ours / truth"),
                       ("wall_pass_fraction", "particles through a wall"),
                       ("wall_depth", "deepest beyond a wall (R)"),

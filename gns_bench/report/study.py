@@ -48,6 +48,7 @@ DIAGNOSTIC_PANELS = (("gravity_ratio", "gravity ratio, one step on true windows"
                      ("held_gravity_ratio", "gravity ratio, one step held still (velocities 0)"),
                      ("held_fall_ratio", "held still and let go: fall over 10 steps / g's"),
                      ("rollout_gravity_ratio", "gravity ratio along the rollout"),
+                     ("landing_ratio", "the floor's push on landing material, one step on true windows"),
                      ("com_fall_ratio", "centre-of-mass fall, ours / truth"))
 DPI = 80
 
@@ -410,7 +411,8 @@ def candidates_section(sweep: SweepSpec, tier: str, rows: list[RunRow], out_dir:
                   "predicted acceleration of particles the truth has in free fall over g, on true windows and "
                   "held still (every input velocity 0: a block at rest in mid-air let go); how far such a block "
                   "falls in the model's first 10 steps over the fall at g; the gravity ratio along the model's own "
-                  "rollout; the centre of mass's fall over the truth's; the share of particles through a wall; "
+                  "rollout; the floor's push on landing material, one step on true windows, over the truth's; "
+                  "the centre of mass's fall over the truth's; the share of particles through a wall; "
                   "the first step a monitor tripped. 1 is the truth for the ratios, 0 a block that hovers.", "",
                   *diagnostics, ""]
     figure = curves_figure(groups, out_dir / "error_vs_time.png", rollout_steps)

@@ -102,7 +102,8 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
     m = evaluation.metrics
     assert abs(m["gravity_ratio"]) < 1e-6 and abs(m["rollout_gravity_ratio"]) < 1e-6
     assert abs(m["held_gravity_ratio"]) < 1e-6 and abs(m["held_fall_ratio"]) < 1e-6
-    assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "wall_depth", "steps_before_trip"} <= set(m)
+    assert {"com_error", "com_fall_ratio", "wall_pass_fraction", "wall_depth", "steps_before_trip",
+            "landing_ratio"} <= set(m)
     assert m["steps_before_trip"] <= m["rollout_steps"]
     # the same model with gravity as its mean acceleration falls freely: ratio 1 on free-falling particles
     simulator.acc_mean.copy_(torch.tensor(meta.gravity))
@@ -112,6 +113,7 @@ def test_evaluation_logs_the_diagnostics(tiny_dataset):
     assert falling.metrics["rollout_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
     assert falling.metrics["held_gravity_ratio"] == pytest.approx(1.0, abs=1e-3)
     assert falling.metrics["held_fall_ratio"] == pytest.approx(1.0, abs=1e-3)  # g k(k+1)/2, integrated as the truth
+    assert falling.metrics["landing_ratio"] == pytest.approx(0.0, abs=1e-3)  # the balls it lets fall through the floor
 
 
 def tiny_simulator(dataset):
@@ -165,3 +167,76 @@ def test_held_fall_tells_a_model_that_pushes_a_block_back_once_it_moves(tiny_dat
     monkeypatch.setattr(simulator, "predict_next_position", pushes_back)
     assert held_gravity_ratio(simulator, traj, meta.gravity) == pytest.approx(1.0, abs=1e-4)  # float32 positions
     assert held_fall_ratio(simulator, traj, meta.gravity) == pytest.approx(5 / 55, abs=1e-4)
+
+
+def bounce(frames: int = 80, stiffness: float = 0.05, contact: float = 0.02) -> np.ndarray:
+    """[frames, 3, 2] particles falling at g onto a floor that pushes back as a spring within `contact` of the
+    lower bound, integrated as the model integrates (v' = v + a, p' = p + v')."""
+    p = np.stack([np.linspace(0.3, 0.5, 3), np.array([0.16, 0.18, 0.2])], axis=1)
+    v = np.zeros_like(p)
+    out = [p.copy()]
+    for _ in range(frames - 1):
+        a = G + np.stack([np.zeros(3), stiffness * np.maximum(0.0, BOUNDS[1][0] + contact - p[:, 1])], axis=1)
+        v = v + a
+        p = p + v
+        out.append(p.copy())
+    return np.stack(out)
+
+
+def test_landing_ratio_is_the_predicted_share_of_the_floors_push():
+    frames = bounce()
+    moving = np.ones(3, bool)
+    truth = diagnostics.accelerations(frames)
+    mask = diagnostics.landing_mask(frames, BOUNDS, G, 0.015, moving)
+    assert mask.any() and not mask[:5].any()  # they land, and not while falling from rest
+    assert (frames[1:-1][mask][:, 1] < BOUNDS[1][0] + 3 * 0.015).all()
+    free_fall = np.broadcast_to(G, truth.shape)  # a model that lets them fall on at g
+    for share, predicted in ((1.0, truth), (0.0, free_fall), (0.5, free_fall + 0.5 * (truth - free_fall))):
+        assert diagnostics.landing_ratio(predicted, truth, mask, G) == pytest.approx(share, abs=1e-9)
+    # the same fall without a floor lands nowhere; a kinematic particle never lands
+    assert np.isnan(diagnostics.landing_ratio(truth, truth, diagnostics.landing_mask(
+        parabola(40), BOUNDS, G, 0.015, np.ones(5, bool)), G))
+    assert not diagnostics.landing_mask(frames, BOUNDS, G, 0.015, np.zeros(3, bool)).any()
+
+
+def test_landing_mask_finds_the_floor_that_gravity_points_at():
+    frames = bounce()
+    flipped = frames.copy()
+    flipped[..., 1] = 1.0 - frames[..., 1]  # the same bounce upside down: g upwards, floor at the upper bound
+    moving = np.ones(3, bool)
+    down = diagnostics.landing_mask(frames, BOUNDS, G, 0.015, moving)
+    assert (diagnostics.landing_mask(flipped, BOUNDS, -G, 0.015, moving) == down).all()
+    assert not diagnostics.landing_mask(flipped, BOUNDS, G, 0.015, moving).any()  # no floor below them
+
+
+def test_landing_ratio_of_the_truth_is_one_and_of_free_fall_zero(tiny_dataset, monkeypatch):
+    """On the tiny dataset's bouncing balls: a model that returns the truth's next frame scores 1, one that lets
+    everything fall at g scores 0, one that keeps each particle's last acceleration (late by a frame at every
+    contact) in between."""
+    import torch
+
+    from gns_bench.evaluate.evaluate import one_step_landing_ratio
+
+    simulator, meta, traj = tiny_simulator(tiny_dataset)
+    positions = torch.as_tensor(traj.position)
+    n = traj.num_particles
+
+    def oracle(window, *args, **kwargs):  # the truth's next frame of each window, found by its last frame
+        last = window[:, -1].reshape(-1, n, window.shape[-1])
+        frames = [int(((positions - frame.to(positions.dtype)).abs().amax(dim=(1, 2)) == 0).nonzero()[0])
+                  for frame in last]
+        return positions[[t + 1 for t in frames]].reshape(-1, window.shape[-1]).to(window.dtype)
+
+    def falls(window, *args, **kwargs):
+        return 2 * window[:, -1] - window[:, -2] + torch.tensor(meta.gravity, dtype=window.dtype)
+
+    def from_history(window, *args, **kwargs):
+        return 3 * window[:, -1] - 3 * window[:, -2] + window[:, -3]
+
+    ratios = {}
+    for name, model in (("oracle", oracle), ("falls", falls), ("history", from_history)):
+        monkeypatch.setattr(simulator, "predict_next_position", model)
+        ratios[name] = one_step_landing_ratio(simulator, traj, meta.gravity, meta.bounds)
+    assert ratios["oracle"] == pytest.approx(1.0, abs=1e-3)  # float32 positions
+    assert ratios["falls"] == pytest.approx(0.0, abs=1e-3)
+    assert 0.0 < ratios["history"] < 0.9
