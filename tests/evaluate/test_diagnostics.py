@@ -193,9 +193,15 @@ def test_landing_ratio_is_the_predicted_share_of_the_floors_push():
     free_fall = np.broadcast_to(G, truth.shape)  # a model that lets them fall on at g
     for share, predicted in ((1.0, truth), (0.0, free_fall), (0.5, free_fall + 0.5 * (truth - free_fall))):
         assert diagnostics.landing_ratio(predicted, truth, mask, G) == pytest.approx(share, abs=1e-9)
-    # the same fall without a floor lands nowhere; a kinematic particle never lands
+    # the same fall without a floor lands nowhere, and one that ends just above the floor is not pushed there
     assert np.isnan(diagnostics.landing_ratio(truth, truth, diagnostics.landing_mask(
         parabola(40), BOUNDS, G, 0.015, np.ones(5, bool)), G))
+    near = parabola(14, start_y=BOUNDS[1][0] + 0.01)
+    near_mask = diagnostics.landing_mask(near, BOUNDS, G, 0.015, np.ones(5, bool))
+    assert near_mask.any()
+    assert np.isnan(diagnostics.landing_ratio(diagnostics.accelerations(near), diagnostics.accelerations(near),
+                                              near_mask, G))
+    # a kinematic particle never lands
     assert not diagnostics.landing_mask(frames, BOUNDS, G, 0.015, np.zeros(3, bool)).any()
 
 
