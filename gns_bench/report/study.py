@@ -215,7 +215,8 @@ def seconds_per_step(row: RunRow) -> float | None:
 
 
 def settled_cell(row: RunRow, metric: str) -> str:
-    """From which evaluated step a gravity ratio stays within `GRAVITY_TOLERANCE` of 1, or how far it swings."""
+    """From which evaluated step a ratio whose truth is 1 (gravity's, the floor's push) stays within
+    `GRAVITY_TOLERANCE` of 1, or how far it swings."""
     points = step_points(row, metric)
     if not points:
         return "—"
@@ -288,14 +289,17 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
             law, prediction = _prediction(fit, paper.get(metric), seconds_per_step(row), points[-1])
             lines.append(f"| {row.planned.name} | {label} | {points[-1][0]:,.0f} | {fmt(points[-1][1])} | {law} | "
                          f"{prediction} | {machines([row]) or '—'} |")
-    gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout |", "|---|---|---|"]
+    gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout | floor's push, true windows |",
+               "|---|---|---|---|"]
     gravity += [f"| {row.planned.name} | {settled_cell(row, 'gravity_ratio')} | "
-                f"{settled_cell(row, 'rollout_gravity_ratio')} |" for row in rows]
+                f"{settled_cell(row, 'rollout_gravity_ratio')} | {settled_cell(row, 'landing_ratio')} |"
+                for row in rows]
     figure = trend_figure(rows, fits, paper, out_dir / "trend.png")
     return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
-            f"When the blocks fall at g: the first evaluated step from which each gravity ratio stays within "
-            f"{GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings (its range over the "
-            f"second half of the curve).", "", *gravity, "", *whole_rollouts_section(rows)]
+            f"When the blocks fall at g and land: the first evaluated step from which each gravity ratio, and "
+            f"the floor's push on landing material (`landing_ratio`), stays within {GRAVITY_TOLERANCE:.0%} of 1 "
+            f"to the last point, or how far it still swings (its range over the second half of the curve; '—': "
+            f"the run was evaluated before it was logged).", "", *gravity, "", *whole_rollouts_section(rows)]
 
 
 WHOLE_SHARE = 0.8  # "whole rollouts": at least 4 of 5 reach the end without a monitor stopping them
@@ -446,10 +450,11 @@ def gravity_studies_section(domain: str, tier: str, reports_root: Path) -> list[
                 points = step_points(row, "gravity_ratio")
                 lines.append(f"| [{study.name}](../../{study.name}/{tier}/README.md) | {row.planned.name} | "
                              f"{points[-1][0]:,.0f} | {settled_cell(row, 'gravity_ratio')} | "
-                             f"{settled_cell(row, 'rollout_gravity_ratio')} |")
+                             f"{settled_cell(row, 'rollout_gravity_ratio')} | {settled_cell(row, 'landing_ratio')} |")
     if not lines:
         return []
-    return ["Along training, in the studies of this domain: the first evaluated step from which each gravity ratio "
-            f"stays within {GRAVITY_TOLERANCE:.0%} of 1 to the last point, or how far it still swings.", "",
-            "| study | run | evaluated to step | gravity ratio, true windows | along the rollout |",
-            "|---|---|---|---|---|", *lines, ""]
+    return ["Along training, in the studies of this domain: the first evaluated step from which each gravity ratio, "
+            f"and the floor's push on landing material, stays within {GRAVITY_TOLERANCE:.0%} of 1 to the last "
+            "point, or how far it still swings.", "",
+            "| study | run | evaluated to step | gravity ratio, true windows | along the rollout | floor's push |",
+            "|---|---|---|---|---|---|", *lines, ""]

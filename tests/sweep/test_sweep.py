@@ -601,6 +601,7 @@ def test_a_study_of_candidates_trains_each_on_its_data_and_tests_all_on_one(swee
     assert sorted(line.split(" | ")[0] for line in gravity) == ["| candidate=more-data-seed0",
                                                                  "| candidate=plain-seed0"]
     assert all(("from step " in line or "not by step 20 (last" in line) for line in gravity)
+    assert all(line.count(" | ") == 3 for line in gravity)  # run, gravity on true windows and rollout, floor's push
     assert (tmp_path / "reports" / "study-two" / "smoke" / "trend.png").stat().st_size > 5000
     # the run summary the runner wrote rebuilds the same tables and curves when the MLflow store is gone
     tracking.use_tracking_uri(f"sqlite:///{tmp_path / 'empty.db'}")
