@@ -205,9 +205,10 @@ def one_step_landing_ratio(simulator: LearnedSimulator, trajectory: Trajectory, 
                            bounds: list[list[float]], max_windows: int = GRAVITY_WINDOWS,
                            device: torch.device | str = "cpu", precision: str = "fp32") -> float:
     """`diagnostics.landing_ratio` of the model's one-step predictions on true windows: over the moving
-    particles the ground truth has land on the floor at a window's last frame (`diagnostics.landing_mask`), the
-    predicted push beyond gravity over the true one (up to `max_windows` windows, evenly spread over the frames
-    that have them). Near 0 a model lets landing material fall on: its rollouts pass the floor."""
+    particles landing in the ground truth at a window's last frame (moving towards the floor, near it:
+    `diagnostics.landing_mask`), the predicted push beyond gravity over the true one (up to `max_windows`
+    windows, evenly spread over the frames that have them). Near 0 a model lets landing material fall on: its
+    rollouts pass the floor."""
     if trajectory.has_inflow:  # a window holds only the particles present
         return float("nan")
     moving = trajectory.particle_type != KINEMATIC_PARTICLE_TYPE
