@@ -60,7 +60,7 @@ class ModelConfig:
     # release's 1 suffices where a solver's wall acts within R of the bound; an MPM grid's wall nodes act on a
     # particle 1.5 cells away (the quadratic B-spline's reach), about 2 R above the bound at grid 64, where a
     # clip at R hides the floor from material that stops before it reaches R (reports/NOTES.md, the floor out
-    # of sight).
+    # of sight). CConv's wall distances (`cconv.wall_features`) reach as far.
     wall_range: float = 1.0
     global_latent: bool = False  # a global latent updated per GN block (ablation, App. C.1)
     gravity_bias: bool = False  # add the dataset's known gravity to the decoder output (ablation)
@@ -222,8 +222,9 @@ class CConvConfig:
     # instantaneous velocities; on finite differences it lags free fall by g / 2, which the network must learn.
     integrator: Literal["euler", "trapezoid"] = "euler"
     gravity: list[float] | None = None  # per stored frame squared; None: metadata.gravity
-    # Fluid particles also get GNS's clipped wall distances (App. B.2) through the authors' `other_feats` input:
-    # most of our datasets have walls at the bounds and no wall particles, which CConv alone would not see.
+    # Fluid particles also get GNS's clipped wall distances (App. B.2, to `model.wall_range` R) through the
+    # authors' `other_feats` input: most of our datasets have walls at the bounds and no wall particles, which
+    # CConv alone would not see.
     # None: where metadata.walls says the bounds are walls.
     wall_features: bool | None = None
     neighbour_backend: Literal["scipy", "torch_cluster", "cell_list"] = "scipy"

@@ -172,7 +172,7 @@ def _build_cconv(config: Config, metadata: Metadata):
     from gns_bench.model.cconv import CConvSimulator
 
     return CConvSimulator(config.cconv, metadata, _radius(config),
-                          input_sequence_length=config.model.input_sequence_length)
+                          input_sequence_length=config.model.input_sequence_length, wall_range=config.model.wall_range)
 
 
 def _cconv_loss(simulator, batch, position_noise, config, *, model=None, num_moving=None, world_size=1,

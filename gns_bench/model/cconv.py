@@ -294,9 +294,10 @@ class CConvSimulator(nn.Module):
     self_edges = False  # the authors' search leaves a particle out of its own neighbourhood
 
     def __init__(self, config: CConvConfig, metadata: Metadata, connectivity_radius: float,
-                 input_sequence_length: int = 6):
+                 input_sequence_length: int = 6, wall_range: float = 1.0):
         """`connectivity_radius`: the resolved `model.connectivity_radius` (the dataset's R unless set), the
-        convolution's radius unless `cconv.radius` sets its own."""
+        convolution's radius unless `cconv.radius` sets its own. `wall_range`: `model.wall_range`, how far the
+        wall distances reach in multiples of that radius, as the GNS's (the release's 1 by default)."""
         super().__init__()
         # Rollouts start after this many ground-truth frames, as the GNS's do, so both are scored on the same
         # steps; CConv itself reads only the last two (its velocity).
@@ -315,6 +316,7 @@ class CConvSimulator(nn.Module):
         self.config = config
         self.dim = metadata.dim
         self.radius = config.radius
+        self.wall_range = float(wall_range)
         self.length_scale = config.reference_radius / config.radius  # reference length units per dataset unit
         self.register_buffer("bounds", torch.tensor(metadata.bounds, dtype=torch.float32))
         self.register_buffer("gravity", torch.tensor(config.gravity, dtype=torch.float32))
@@ -376,8 +378,8 @@ class CConvSimulator(nn.Module):
                  velocity_star.index_select(0, fluid_index) * (self.length_scale / c.reference_dt)]
         if c.wall_features:  # App. B.2's clipped distances to the bounds, at x*
             bounds = (self.bounds if bounds is None else bounds).to(window.dtype)
-            parts += [((fluid_star - bounds[:, 0]) / self.radius).clamp(-1, 1),
-                      ((bounds[:, 1] - fluid_star) / self.radius).clamp(-1, 1)]
+            parts += [((fluid_star - bounds[:, 0]) / self.radius).clamp(-self.wall_range, self.wall_range),
+                      ((bounds[:, 1] - fluid_star) / self.radius).clamp(-self.wall_range, self.wall_range)]
         if self.context_size:
             if context is None:
                 raise ValueError("this simulator was built for a dataset with a global context; pass context")

@@ -353,3 +353,33 @@ def test_batch_bf16_and_3d() -> None:
     loss = sim3.unrolled_loss(w3, t3)
     loss.backward()
     assert torch.isfinite(loss) and sim3.network.conv0_fluid.kernel.grad.abs().sum() > 0
+
+
+def test_wall_distances_reach_model_wall_range() -> None:
+    """CConv's wall distances are the GNS's (App. B.2), clipped where `model.wall_range` says: a particle 2 R
+    above the floor reads a wall 1 R away (no wall nearer) at the release's 1, and 2 R at 3."""
+    from gns_bench.config import load_config
+    from gns_bench.simulators import build
+
+    fluid = torch.tensor([[0.5, 2 * RADIUS], [0.5, 0.5]])
+    window = torch.stack([fluid, fluid], dim=1)  # at rest
+    types = torch.full((2,), WATER)
+    seen = {}
+    for wall_range in (1.0, 3.0):
+        config = load_config(None, ["model.architecture=cconv", f"model.connectivity_radius={RADIUS}",
+                                    f"model.wall_range={wall_range}"])
+        sim = build(config, metadata(walls=True))
+        assert sim.wall_range == wall_range
+
+        def capture(fluid_features, *args, _range=wall_range):
+            seen[_range] = fluid_features.detach().clone()
+            return torch.zeros(fluid_features.shape[0], 2)
+
+        sim.network.forward = capture
+        with torch.no_grad():
+            sim.predict_next_position(window, types)
+    # features: 1, velocity (2), distance to the lower bounds (2), to the upper bounds (2); the floor is lower y
+    floor = 1 + 2 + 1
+    assert seen[1.0][0, floor].item() == pytest.approx(1.0, abs=1e-4)
+    assert seen[3.0][0, floor].item() == pytest.approx(2.0, abs=1e-2)  # at x* = x + g: 2 R less g's step
+    assert seen[1.0][1, floor].item() == 1.0 and seen[3.0][1, floor].item() == 3.0  # far from every wall
