@@ -5,7 +5,9 @@ Budget: 6,000 steps of batch 8 per precision, about 100 s each on 2 cores. At th
 pipeline (noise sigma_v = 3e-4, five times g dt^2) has learned gravity on average but not yet per particle:
 measured, the mean one-step acceleration of held-out free-falling particles was 0.83-1.10 g and single particles
 0.4-1.5 g (fp32 and bf16), every block's centre fell 0.97-1.14 of its true fall over 100 steps, resting and
-landing blocks stayed within 0.5 R of the truth and above the floor. The thresholds below sit outside that
+landing blocks stayed within 0.5 R of the truth and above the floor, and the floor's push predicted for landing
+particles was 0.92 of the truth's (fp32 and bf16; 0.36 with the wall features dropped). The thresholds below sit
+outside that
 spread; each fails on a broken pipeline (the `break` tests, run with `pytest -m slow tests/learning`).
 """
 
@@ -28,6 +30,7 @@ COM_FALL = (0.8, 1.25)  # every block's centre of mass: its fall over 100 steps 
 ROLLOUT_ERROR = 4.0  # R: the farthest particle from its parabola after 100 steps
 REST_DEVIATION = 1.0  # R: a resting block's farthest particle from the truth over 200 steps
 LANDED_DEVIATION = 1.5  # R: the same for blocks that land
+LANDING_RATIO = (0.75, 1.25)  # the floor's push predicted for landing particles over the truth's, one step
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +80,22 @@ def test_a_block_at_rest_stays_at_rest(model):
 def test_a_falling_block_stops_at_the_floor(model):
     simulator, precision = model
     assert support_failures(simulator, "landing", LANDED_DEVIATION, precision) == []
+
+
+def floor_push(simulator, precision: str = "fp32") -> float:
+    """`landing_ratio`, the diagnostic every evaluation logs, on held-out landing blocks."""
+    from gns_bench.evaluate.evaluate import one_step_landing_ratio
+
+    traj = scenes.trajectory(np.random.default_rng(11), ["landing"] * 4, 100)
+    return one_step_landing_ratio(simulator, traj, scenes.GRAVITY.tolist(), scenes.BOUNDS.tolist(),
+                                  precision=precision)
+
+
+def test_the_floor_push_diagnostic_reads_a_model_that_lands(model):
+    """On a model whose landing blocks stop at the floor (the check above), the push it predicts for landing
+    particles on true windows over the truth's is near 1."""
+    simulator, precision = model
+    assert LANDING_RATIO[0] <= floor_push(simulator, precision) <= LANDING_RATIO[1]
 
 
 def test_the_scenes_hold_their_known_answers():
@@ -129,6 +148,9 @@ def test_break_wall_features_dropped(data: Path, tmp_path: Path, monkeypatch: py
     monkeypatch.setattr(features, "node_features", without_walls)
     simulator = checks.trained(data, tmp_path / "run", train=BATCH)
     assert support_failures(simulator, "landing", LANDED_DEVIATION)
+    ratio = floor_push(simulator)
+    print(f"floor push without wall features: {ratio:.3f}")
+    assert not LANDING_RATIO[0] <= ratio <= LANDING_RATIO[1]
 
 
 @pytest.mark.slow
