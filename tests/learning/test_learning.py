@@ -7,8 +7,7 @@ measured, the mean one-step acceleration of held-out free-falling particles was 
 0.4-1.5 g (fp32 and bf16), every block's centre fell 0.97-1.14 of its true fall over 100 steps, resting and
 landing blocks stayed within 0.5 R of the truth and above the floor, and the floor's push predicted for landing
 particles was 0.92 of the truth's (fp32 and bf16; 0.36 with the wall features dropped). The thresholds below sit
-outside that
-spread; each fails on a broken pipeline (the `break` tests, run with `pytest -m slow tests/learning`).
+outside that spread; each fails on a broken pipeline (the `break` tests, run with `pytest -m slow tests/learning`).
 """
 
 from __future__ import annotations
