@@ -94,7 +94,8 @@ def test_the_floor_push_diagnostic_reads_a_model_that_lands(model):
     """On a model whose landing blocks stop at the floor (the check above), the push it predicts for landing
     particles on true windows over the truth's is near 1."""
     simulator, precision = model
-    assert LANDING_RATIO[0] <= floor_push(simulator, precision) <= LANDING_RATIO[1]
+    ratio = floor_push(simulator, precision)
+    assert LANDING_RATIO[0] <= ratio <= LANDING_RATIO[1], f"floor's push {ratio:.3g}, expected within {LANDING_RATIO}"
 
 
 def test_the_scenes_hold_their_known_answers():
@@ -148,8 +149,7 @@ def test_break_wall_features_dropped(data: Path, tmp_path: Path, monkeypatch: py
     simulator = checks.trained(data, tmp_path / "run", train=BATCH)
     assert support_failures(simulator, "landing", LANDED_DEVIATION)
     ratio = floor_push(simulator)
-    print(f"floor push without wall features: {ratio:.3f}")
-    assert not LANDING_RATIO[0] <= ratio <= LANDING_RATIO[1]
+    assert not LANDING_RATIO[0] <= ratio <= LANDING_RATIO[1], f"floor's push {ratio:.3g} without wall features"
 
 
 @pytest.mark.slow
