@@ -37,6 +37,7 @@ from torch import nn
 
 from gns_bench.config import CConvConfig, ConfigError
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata
+from gns_bench.model.features import wall_distances
 from gns_bench.model.neighbours import radius_graph
 from gns_bench.model.precision import autocast
 
@@ -378,8 +379,7 @@ class CConvSimulator(nn.Module):
                  velocity_star.index_select(0, fluid_index) * (self.length_scale / c.reference_dt)]
         if c.wall_features:  # App. B.2's clipped distances to the bounds, at x*
             bounds = (self.bounds if bounds is None else bounds).to(window.dtype)
-            parts += [((fluid_star - bounds[:, 0]) / self.radius).clamp(-self.wall_range, self.wall_range),
-                      ((bounds[:, 1] - fluid_star) / self.radius).clamp(-self.wall_range, self.wall_range)]
+            parts.append(wall_distances(fluid_star, bounds, self.radius, self.wall_range))
         if self.context_size:
             if context is None:
                 raise ValueError("this simulator was built for a dataset with a global context; pass context")

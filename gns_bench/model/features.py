@@ -29,6 +29,15 @@ def velocities(window: torch.Tensor) -> torch.Tensor:
     return window[:, 1:] - window[:, :-1]
 
 
+def wall_distances(position: torch.Tensor, bounds: torch.Tensor, radius: float,
+                   wall_range: float = 1.0) -> torch.Tensor:
+    """[N, 2D]: each particle's distance to the lower and then the upper bound of every dimension [D, 2], over
+    R, clipped to [-1, 1] (App. B.2) or to [-wall_range, wall_range] (`model.wall_range`)."""
+    to_lower = (position - bounds[:, 0]) / radius
+    to_upper = (bounds[:, 1] - position) / radius
+    return torch.clamp(torch.cat([to_lower, to_upper], dim=1), -wall_range, wall_range)
+
+
 def node_features(window: torch.Tensor, norm: Normalisation, *, bounds: torch.Tensor, radius: float,
                   walls: bool = True, absolute_positions: bool = False,
                   context: torch.Tensor | None = None, wall_range: float = 1.0) -> torch.Tensor:
@@ -46,9 +55,7 @@ def node_features(window: torch.Tensor, norm: Normalisation, *, bounds: torch.Te
     parts = [vel.reshape(n, -1)]
     position = window[:, -1]
     if walls:
-        to_lower = (position - bounds[:, 0]) / radius
-        to_upper = (bounds[:, 1] - position) / radius
-        parts.append(torch.clamp(torch.cat([to_lower, to_upper], dim=1), -wall_range, wall_range))
+        parts.append(wall_distances(position, bounds, radius, wall_range))
     if absolute_positions:
         parts.append((position - bounds[:, 0]) / (bounds[:, 1] - bounds[:, 0]))
     if context is not None:
