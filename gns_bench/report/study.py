@@ -228,6 +228,15 @@ def settled_cell(row: RunRow, metric: str) -> str:
             "the second half)")
 
 
+# The ratios whose truth is 1 that the "when the blocks fall at g and land" tables follow along training.
+SETTLING = ("gravity_ratio", "rollout_gravity_ratio", "landing_ratio")
+
+
+def settled_cells(row: RunRow) -> str:
+    """`settled_cell` of each of `SETTLING`, as table cells."""
+    return " | ".join(settled_cell(row, metric) for metric in SETTLING)
+
+
 def _prediction(fit: PowerLaw | None, paper: float | None, per_step: float | None,
                 last: tuple[float, float]) -> tuple[str, str]:
     if fit is None:
@@ -291,9 +300,7 @@ def trend_section(groups: dict[str, list[RunRow]], domain: str, out_dir: Path) -
                          f"{prediction} | {machines([row]) or '—'} |")
     gravity = ["| run | gravity ratio within 10% of 1, true windows | along the rollout | floor's push, true windows |",
                "|---|---|---|---|"]
-    gravity += [f"| {row.planned.name} | {settled_cell(row, 'gravity_ratio')} | "
-                f"{settled_cell(row, 'rollout_gravity_ratio')} | {settled_cell(row, 'landing_ratio')} |"
-                for row in rows]
+    gravity += [f"| {row.planned.name} | {settled_cells(row)} |" for row in rows]
     figure = trend_figure(rows, fits, paper, out_dir / "trend.png")
     return [*lines, "", f"![errors against steps and training time, log-log]({figure.name})", "",
             f"When the blocks fall at g and land: the first evaluated step from which each gravity ratio, and "
@@ -449,8 +456,7 @@ def gravity_studies_section(domain: str, tier: str, reports_root: Path) -> list[
             if step_points(row, "gravity_ratio"):
                 points = step_points(row, "gravity_ratio")
                 lines.append(f"| [{study.name}](../../{study.name}/{tier}/README.md) | {row.planned.name} | "
-                             f"{points[-1][0]:,.0f} | {settled_cell(row, 'gravity_ratio')} | "
-                             f"{settled_cell(row, 'rollout_gravity_ratio')} | {settled_cell(row, 'landing_ratio')} |")
+                             f"{points[-1][0]:,.0f} | {settled_cells(row)} |")
     if not lines:
         return []
     return ["Along training, in the studies of this domain: the first evaluated step from which each gravity ratio, "
