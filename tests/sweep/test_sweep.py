@@ -62,7 +62,8 @@ def test_every_sweep_file_loads_and_plans() -> None:
                                                              "study-cpu_budget", "study-gravity_curve",
                                                              "study-gravity_curve_water", "study-goop_curve",
                                                              "study-goop_candidates", "study-goop_branches",
-                                                             "study-held_windows_waterdrop", "study-goop_floor"}
+                                                             "study-held_windows_waterdrop", "study-goop_floor",
+                                                             "study-goop_curve_recipe"}
     assert {load_sweep(p).kind for p in files} == {"domain", "ablation", "stress", "study", "baseline"}
     assert load_sweep(SWEEPS_DIR / "studies" / "aggregate.toml").kind == "study"
     mp = load_sweep(SWEEPS_DIR / "ablations" / "message_passing_steps.toml")
