@@ -128,6 +128,12 @@ class TrainConfig:
     # state, which the paper's windows never show (`data/free_fall.py`; the `held_gravity_ratio` diagnostic
     # measures it). Needs the dataset's g.
     held_share: float = 0.0
+    # An exponential moving average of the weights (not in the paper: 0 is its training, the last weights): the
+    # average moves 1 - weight_average of the way to the weights after each step (train/averaging.py), and the
+    # run's evaluations, curve points and checkpointed model for testing use it. 0.999 averages over about the
+    # last 1,000 steps. At the constant rate of a learning curve a snapshot's gravity ratio swung between -0.10
+    # and 1.27 from one point to the next on WATER (reports/study-gravity_curve_water).
+    weight_average: float = 0.0
     seed: int = 0
     checkpoint_every: int = 1000
     # Keep the checkpoint of every curve point (`eval_every`) as checkpoint-<step>.pt beside checkpoint.pt, and
@@ -178,6 +184,7 @@ class TrainConfig:
         _require(0.0 <= self.start_window_share <= 1.0, "train.start_window_share", "must be in [0, 1]")
         _require(self.start_windows >= 1, "train.start_windows", "must be >= 1")
         _require(0.0 <= self.held_share <= 1.0, "train.held_share", "must be in [0, 1]")
+        _require(0.0 <= self.weight_average < 1.0, "train.weight_average", "must be in [0, 1) (0 turns it off)")
         _require(self.checkpoint_every >= 1, "train.checkpoint_every", "must be >= 1")
         _require(self.log_every >= 1, "train.log_every", "must be >= 1")
         _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")

@@ -14,6 +14,7 @@ from gns_bench.config import Config, resolve_for_dataset, saved_config
 from gns_bench.data.format import Metadata
 from gns_bench.devices import resolve_device
 from gns_bench.model.simulator import LearnedSimulator, Simulator
+from gns_bench.train.averaging import averaged
 
 CHECKPOINT_NAME = "checkpoint.pt"
 FORMAT_VERSION = 1
@@ -55,7 +56,8 @@ def build_simulator(config: Config, metadata: Metadata) -> Simulator:
 
 def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
                    ) -> tuple[LearnedSimulator, Config, Metadata]:
-    """Rebuild a trained simulator from its checkpoint, in eval mode on `device` ("auto" allowed). Its config
+    """Rebuild a trained simulator from its checkpoint, in eval mode on `device` ("auto" allowed): with its
+    weights' average where it trained with one (`train.weight_average`), the model its run is tested as. Its config
     is resolved against the dataset it was trained on (checkpoints from before configs were resolved hold
     no radius) and reads fields it predates as they were (`config.saved_config`)."""
     device = resolve_device(str(device))
@@ -63,6 +65,6 @@ def load_simulator(checkpoint: str | Path, device: str | torch.device = "cpu"
     metadata = Metadata.from_json(saved["metadata"], f"{checkpoint} (metadata)")
     config = resolve_for_dataset(saved_config(saved["config"], str(checkpoint)), metadata.default_connectivity_radius)
     simulator = build_simulator(config, metadata).to(device)
-    simulator.load_state_dict(saved["model"])
+    simulator.load_state_dict(averaged(saved["model"], saved.get("average")))  # a run's model: its average
     simulator.eval()
     return simulator, config, metadata

@@ -33,6 +33,7 @@ from gns_bench.model.noise import random_walk_position_noise
 from gns_bench.model.simulator import LearnedSimulator, Simulator
 from gns_bench.progress import progress_bar
 from gns_bench.train import distributed
+from gns_bench.train.averaging import WeightAverage, averaged
 from gns_bench.train.checkpoints import CHECKPOINT_NAME, build_simulator, load_checkpoint, save_checkpoint
 from gns_bench.train.losses import learning_rate, pushed_forward, pushforward_unroll, training_loss  # noqa: F401
 
@@ -42,7 +43,7 @@ RESUMABLE_CHANGES = {"steps", "checkpoint_every", "log_every", "device", "num_th
 # And between the run that wrote a checkpoint and a run that starts from it (`train.init_from`): how the rate
 # ends and which windows are drawn from there (held-still windows added to a trunk trained without them).
 BRANCH_CHANGES = RESUMABLE_CHANGES | {"learning_rate_anneal_steps", "learning_rate_anneal_to", "init_from",
-                                      "held_share"}
+                                      "held_share", "weight_average"}
 
 
 @dataclass
@@ -272,7 +273,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    step, earlier_wall_time, speed, resumed_window = 0, 0.0, None, []
+    step, earlier_wall_time, speed, resumed_window, saved_average = 0, 0.0, None, [], None
     curve_step = 0  # the last step whose curve point (train.eval_every) was logged
     start_from = (checkpoint_path if resume and checkpoint_path.exists()
                   else Path(tc.init_from) if tc.init_from and not checkpoint_path.exists() else None)
@@ -282,6 +283,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
                          RESUMABLE_CHANGES if start_from == checkpoint_path else BRANCH_CHANGES)
         simulator.load_state_dict(saved["model"])
         optimiser.load_state_dict(saved["optimizer"])
+        saved_average = saved.get("average")  # a branch from a trunk without one starts it from its weights
         step = int(saved["step"])
         earlier_wall_time = float(saved.get("wall_time_s", 0.0))
         if "speed" in saved:  # a resumed run trains on with the settings it chose
@@ -293,6 +295,9 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         curve_step = int(saved.get("curve_step", step)) if start_from == checkpoint_path else step
     elif checkpoint_path.exists():
         raise FileExistsError(f"{checkpoint_path} exists; pass resume=True (--resume) or choose another out dir")
+    average = WeightAverage(simulator, tc.weight_average) if tc.weight_average else None
+    if average is not None and saved_average is not None:
+        average.load_state_dict(saved_average)
     if speed is None:
         speed = _speed_settings(config, simulator, sampler, device, group.world_size, tc.steps - step)
     if speed.compile:
@@ -315,7 +320,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             "model": simulator.state_dict(), "optimizer": optimiser.state_dict(), "step": at_step,
             "config": config.to_dict(), "metadata": metadata.to_json(), "dataset": str(dataset_dir),
             "wall_time_s": training_seconds(), "speed": dataclasses.asdict(speed), "log_window": list(window_losses),
-            "curve_step": curve_step})
+            "curve_step": curve_step, **({"average": average.state_dict()} if average is not None else {})})
 
     def evaluate_now(at_step: int) -> None:
         nonlocal paused, curve_step
@@ -323,7 +328,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             return
         seconds, began = clock.total, time.perf_counter()
         snapshot = build_simulator(config, metadata).to(device)  # uncompiled, whatever trains
-        snapshot.load_state_dict(simulator.state_dict())
+        snapshot.load_state_dict(averaged(simulator.state_dict(), average.state_dict() if average else None))
         on_eval(snapshot.eval(), at_step, seconds)
         curve_step = at_step
         paused += time.perf_counter() - began
@@ -350,6 +355,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             optimiser.step()
+            if average is not None:
+                average.update(simulator)
             step += 1
             value = float(loss.detach())  # waits for the step to finish (a GPU's too)
             clock.add(time.perf_counter() - step_started)
