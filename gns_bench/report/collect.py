@@ -18,6 +18,7 @@ import numpy as np
 from gns_bench import tracking
 from gns_bench.evaluate.result import RolloutResult
 from gns_bench.report.kept import UNFINISHED, read_kept
+from gns_bench.sweep.runner import summary_key
 from gns_bench.sweep.spec import PlannedRun, SweepSpec, discover_sweeps, load_sweep
 from gns_bench.sweep.summaries import read_run_summary, record_from_json, summary_path
 
@@ -110,14 +111,29 @@ def collect(sweep: SweepSpec, tier: str, reports_root: Path | None = None) -> li
     for planned in sweep.plan(tier):
         named = [r for r in records if r.name == planned.name]  # newest first
         finished = [r for r in named if r.status == "FINISHED"]
-        record = ((finished or [saved.get(planned.name)] or [None])[0] or (named or [None])[0]
-                  or (record_from_json(shown[planned.name]) if planned.name in shown else None))
+        # an unfinished attempt shows only if it trains what the plan now asks (`_of_this_plan`)
+        unfinished = [r for r in named if r.status != "FINISHED" and _of_this_plan(planned, r)]
+        kept = record_from_json(shown[planned.name]) if planned.name in shown else None
+        record = ((finished or [saved.get(planned.name)] or [None])[0] or (unfinished or [None])[0]
+                  or (kept if kept is not None and _of_this_plan(planned, kept) else None))
         if record is not None and record in named and any(k.startswith(tracking.CURVE_PREFIX)
                                                           for k in record.metrics):
             record.curves = {key: tracking.metric_history(record.run_id, key) for key in record.metrics
                              if key.startswith(tracking.CURVE_PREFIX)}
         rows.append(RunRow(planned, record))
     return rows
+
+
+def _of_this_plan(planned: PlannedRun, record: tracking.RunRecord) -> bool:
+    """Whether an unfinished MLflow run of `planned`'s name was training what the plan now asks: its `run_key` is
+    the plan's on the datasets it names (a candidate whose recipe changed keeps its name, and an attempt at the
+    earlier recipe is another model). A record that names no key or dataset is taken as it is. Finished runs
+    are matched by name: a committed summary's may predate a key change that left their model as it was."""
+    key = record.tags.get("run_key")
+    if not key:
+        return True
+    expected = summary_key(planned, record)
+    return expected is None or expected == key
 
 
 def unfinished_records(rows: list[RunRow]) -> dict[str, dict]:

@@ -238,6 +238,25 @@ def interrupted_at_step_7(monkeypatch: pytest.MonkeyPatch, run: Callable[[], obj
     monkeypatch.setattr(losses, "training_loss", real)
 
 
+
+def test_a_report_shows_an_unfinished_attempt_only_under_the_plan_it_trained(sweeps: Path, tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """A candidate whose recipe changes keeps its name; its killed attempt at the earlier recipe is another model
+    and no longer shows in the report's row for that name (`report/collect.py`)."""
+    from gns_bench.report.collect import collect
+
+    path = sweeps / "tests" / "changed.toml"
+    one_run = GRID.replace('"train.noise_std" = [0.0, 3e-4]\n', "")
+    path.write_text(one_run.replace('"model.message_passing_steps" = [1, 2]', '"model.message_passing_steps" = [1]'))
+    sweep = load_sweep(path)
+    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, share=False)
+    interrupted_at_step_7(monkeypatch, lambda: run_sweep(sweep, "smoke", **roots))
+    (row,) = collect(sweep, "smoke", tmp_path / "reports")
+    assert row.record is not None and row.record.status == "KILLED"  # the attempt shows under its own plan
+    path.write_text(path.read_text().replace("learning_rate = 1e-3", "learning_rate = 2e-3"))
+    (row,) = collect(load_sweep(path), "smoke", tmp_path / "reports")
+    assert row.record is None  # the same name, another recipe: missing, not the old attempt
+
 def test_ctrl_c_leaves_no_finished_run_and_resumes(sweeps: Path, tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     path = sweeps / "tests" / "interrupt.toml"
