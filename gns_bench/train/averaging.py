@@ -35,29 +35,23 @@ def effective_decay(decay: float, updates: int) -> float:
 
 class WeightAverage:
     """The average of `module`'s floating-point parameters, in float32 whatever the parameters' type; buffers
-    (the normalisation statistics) are the module's own and are not averaged."""
+    (the normalisation statistics) are the module's own and are not averaged. It follows the parameter tensors
+    themselves, which training updates in place (a compiled or data-parallel wrapper shares them)."""
 
     def __init__(self, module: torch.nn.Module, decay: float):
         if not 0.0 < decay < 1.0:
             raise ValueError(f"weight average decay {decay}: expected 0 < decay < 1")
         self.decay = decay
         self.updates = 0
-        self.names = [name for name, p in module.named_parameters() if p.dtype.is_floating_point]
-        params = dict(module.named_parameters())
-        self.values = [params[name].detach().to(torch.float32).clone() for name in self.names]
+        named = [(name, p) for name, p in module.named_parameters() if p.dtype.is_floating_point]
+        self.names = [name for name, _ in named]
+        self._live = [p.detach() for _, p in named]
+        self.values = [p.to(torch.float32).clone() for p in self._live]
 
-    def _params(self, module: torch.nn.Module) -> list[torch.Tensor]:
-        params = dict(module.named_parameters())
-        missing = [name for name in self.names if name not in params]
-        if missing:
-            raise ValueError(f"weight average: the module has no parameters {missing[:3]}")
-        return [params[name].detach() for name in self.names]
-
-    def update(self, module: torch.nn.Module) -> None:
-        """Move the average towards `module`'s current parameters (after an optimiser step)."""
+    def update(self) -> None:
+        """Move the average towards the parameters as they are now (after an optimiser step)."""
         weight = 1.0 - effective_decay(self.decay, self.updates)
-        current = [p.to(torch.float32) for p in self._params(module)]
-        torch._foreach_lerp_(self.values, current, weight)
+        torch._foreach_lerp_(self.values, [p.to(torch.float32) for p in self._live], weight)
         self.updates += 1
 
     def state_dict(self) -> dict[str, Any]:

@@ -356,7 +356,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
             loss.backward()
             optimiser.step()
             if average is not None:
-                average.update(simulator)
+                average.update()
             step += 1
             value = float(loss.detach())  # waits for the step to finish (a GPU's too)
             clock.add(time.perf_counter() - step_started)

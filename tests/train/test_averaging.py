@@ -28,18 +28,18 @@ def test_the_average_follows_its_closed_forms() -> None:
     module = scalar_module(2.0)
     average = WeightAverage(module, decay=0.9)
     module.w.data.fill_(12.0)
-    average.update(module)  # the first update keeps a tenth of the start: 0.1 * 2 + 0.9 * 12
+    average.update()  # the first update keeps a tenth of the start: 0.1 * 2 + 0.9 * 12
     assert average.values[0].item() == pytest.approx(11.0)
     assert [effective_decay(0.9, n) for n in (0, 8, 80, 10_000)] == pytest.approx([0.1, 0.5, 0.9, 0.9])
     # weights that alternate +-1 about their mean leave an average that alternates +-(1 - d) / (1 + d)
     for n in range(400):
         module.w.data.fill_(1.0 if n % 2 == 0 else -1.0)
-        average.update(module)
+        average.update()
     assert abs(average.values[0].item()) == pytest.approx((1 - 0.9) / (1 + 0.9), rel=1e-4)
     # held weights: the average comes to them and stays
     module.w.data.fill_(3.0)
     for _ in range(300):
-        average.update(module)
+        average.update()
     assert average.values[0].item() == pytest.approx(3.0, abs=1e-6)
     with pytest.raises(ValueError, match="decay"):
         WeightAverage(module, decay=1.0)
@@ -50,7 +50,7 @@ def test_the_averaged_state_keeps_buffers_and_dtypes_and_refuses_another_models(
     average = WeightAverage(module, decay=0.5)
     assert average.values[0].dtype == torch.float32  # averaged in float32 whatever the weights' type
     module.w.data.fill_(3.0)
-    average.update(module)
+    average.update()
     state = averaged(module.state_dict(), average.state_dict())
     assert state["w"].dtype == torch.bfloat16 and state["w"].item() == pytest.approx(0.1 * 1.0 + 0.9 * 3.0, rel=1e-2)
     assert state["stats"].item() == 7.0  # buffers are the model's
