@@ -21,6 +21,7 @@ import math
 import os
 import statistics
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ from gns_bench.config import TrainConfig
 from gns_bench.devices import machine_key
 from gns_bench.model.simulator import LearnedSimulator, Simulator
 
+MATMUL_SHAPE = (4096, 128, 128)  # an [E, L] x [L, L] product: the edge MLPs' (Sec. 2, L = 128), the GNS's commonest
 WARM_UP_STEPS = 3  # not timed: allocation, autotuning kernels, and compilation for compiled candidates
 TIMED_STEPS = 8
 
@@ -43,13 +45,60 @@ class SpeedSettings:
     source: str = "given"
     seconds_per_step: dict[str, float] = field(default_factory=dict)  # "<precision>[+compile]" -> seconds
     compile_seconds: float = 0.0
+    note: str = ""  # what the choice did not measure, and why (bf16 on a machine with no fast bf16 matmul)
 
     def describe(self) -> str:
         settings = f"{self.precision}{' compiled' if self.compile else ''}"
+        note = f"; {self.note}" if self.note else ""
         if self.source == "given":
-            return settings
+            return settings + (f" ({self.note})" if self.note else "")
         timings = ", ".join(f"{name} {seconds:.3g} s" for name, seconds in sorted(self.seconds_per_step.items()))
-        return f"{settings} ({self.source}: {timings} a step)"
+        return f"{settings} ({self.source}: {timings + ' a step' if timings else 'nothing to time'}{note})"
+
+
+@dataclass(frozen=True)
+class MatmulRates:
+    """GFLOP/s of the `MATMUL_SHAPE` product on one machine, in fp32 and in bf16."""
+    fp32: float
+    bf16: float
+
+    @property
+    def bf16_pays(self) -> bool:
+        """Whether bf16 can speed training up here: its products are faster than fp32's. Where they are not,
+        the machine has no bf16 unit and runs them in a fallback (see the module's docstring)."""
+        return self.bf16 > self.fp32
+
+    def describe(self) -> str:
+        rows, inner, cols = MATMUL_SHAPE
+        return (f"its [{rows}, {inner}] x [{inner}, {cols}] matmul ran {self.bf16:.3g} GFLOP/s in bf16 against "
+                f"{self.fp32:.3g} in fp32 here")
+
+
+def matmul_rates(device: torch.device, *, use_cache: bool = True, seconds: float = 0.2) -> MatmulRates:
+    """This machine's rate for the GNS's commonest product in fp32 and in bf16 (each timed for about `seconds`,
+    after one warm-up product), cached per machine like the training probe's choice."""
+    key = f"{machine_key(device)} | matmul {'x'.join(map(str, MATMUL_SHAPE))}"
+    cache = _read_cache()
+    if use_cache and key in cache:
+        return MatmulRates(**cache[key])
+    rows, inner, cols = MATMUL_SHAPE
+    rates = {}
+    for name, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
+        a = torch.randn(rows, inner, device=device).to(dtype)
+        b = torch.randn(inner, cols, device=device).to(dtype)
+        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+        a @ b
+        sync()
+        count, started = 0, time.perf_counter()
+        while count == 0 or time.perf_counter() - started < seconds:
+            a @ b
+            sync()
+            count += 1
+        rates[name] = 2 * rows * inner * cols * count / (time.perf_counter() - started) / 1e9
+    result = MatmulRates(**rates)
+    cache[key] = asdict(result)
+    _write_cache(cache)
+    return result
 
 
 def candidates(config: TrainConfig) -> list[tuple[str, bool]]:
@@ -84,9 +133,16 @@ def choose(config: TrainConfig, simulator: Simulator, step_fn: Callable[[Learned
     """The settings to train with. Nothing auto: the config's own. Otherwise the cached choice for this
     machine, model and graph size, or a probe: `step_fn(model, precision)` runs one training step of `model`
     (a copy of `simulator`, compiled for compiled candidates) in `precision`."""
-    options = candidates(config)
+    options, note = candidates(config), ""
+    if any(precision == "bf16" for precision, _ in options) and not (rates := matmul_rates(device)).bf16_pays:
+        if config.precision == "auto":
+            options, note = [o for o in options if o[0] != "bf16"], f"bf16 not probed: {rates.describe()}"
+        else:
+            note = f"bf16 as configured, though {rates.describe()}"
+            warnings.warn(f"train.precision = \"bf16\" on a machine with no fast bf16 matmul: {rates.describe()}; "
+                          "training will be slower than in fp32", stacklevel=2)
     if len(options) == 1:
-        return SpeedSettings(*options[0])
+        return SpeedSettings(*options[0], source="probed" if config.precision == "auto" else "given", note=note)
     key = cache_key(config, simulator, nodes, device)
     cache = _read_cache()
     if use_cache and key in cache:
@@ -101,7 +157,7 @@ def choose(config: TrainConfig, simulator: Simulator, step_fn: Callable[[Learned
             compile_seconds = max(compile_seconds, warm_up)
         del model
     best = pick(timings, compile_seconds, steps_left)
-    choice = SpeedSettings(best[0], best[1], "probed", timings, compile_seconds)
+    choice = SpeedSettings(best[0], best[1], "probed", timings, compile_seconds, note)
     cache[key] = {k: v for k, v in asdict(choice).items() if k != "source"}
     _write_cache(cache)
     return choice

@@ -28,6 +28,18 @@ def isolated_mlflow(tmp_path_factory: pytest.TempPathFactory):
         os.environ["MLFLOW_TRACKING_URI"] = previous
 
 
+@pytest.fixture(scope="session", autouse=True)
+def isolated_autotune_cache(tmp_path_factory: pytest.TempPathFactory):
+    """Measured speed choices (gns_bench/autotune.py) go to a cache of this session's, never the user's."""
+    previous = os.environ.get("GNS_BENCH_CACHE")
+    os.environ["GNS_BENCH_CACHE"] = str(tmp_path_factory.mktemp("autotune"))
+    yield
+    if previous is None:
+        os.environ.pop("GNS_BENCH_CACHE", None)
+    else:
+        os.environ["GNS_BENCH_CACHE"] = previous
+
+
 REPORTS = Path(__file__).resolve().parent.parent / "reports"
 
 

@@ -23,6 +23,24 @@ def test_baseline_equals_the_split_edge_model(aggregate: str) -> None:
     assert a.abs().mean() > 1e-3
 
 
+def test_the_gemm_peak_stops_growing_once_a_product_is_slow(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A dtype without a hardware path (bf16 on a CPU with no bf16 unit) must not time minute-long products."""
+    from gns_bench.bench import measure
+
+    seconds = {256: 0.01, 512: 2.0, 1024: 16.0}  # the second size already slower than GEMM_SECONDS
+    timed_sizes: list[int] = []
+
+    def fake_timed(fn, repeats=5, warmup=2, sync=None):
+        size = int(fn.__defaults__[0].shape[0])  # the lambda's bound operand
+        timed_sizes.append(size)
+        return seconds[size]
+
+    monkeypatch.setattr(measure, "timed", fake_timed)
+    rate = measure.gemm_peak_gflops(torch.float32, torch.device("cpu"), sizes=(1024, 256, 512))
+    assert timed_sizes == [256, 512]  # smallest first, and none after the slow one
+    assert rate == pytest.approx(max(2 * n**3 / seconds[n] / 1e9 for n in (256, 512)))
+
+
 def test_forward_flops_count_every_linear_layer() -> None:
     scene = synthetic_scene(100, dim=2)
     config = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=1, mlp_hidden_layers=0)
@@ -34,14 +52,17 @@ def test_forward_flops_count_every_linear_layer() -> None:
     assert forward_flops(model, n, e) == expected
 
 
-def test_bench_writes_json_markdown_and_plot(tmp_path) -> None:
+def test_bench_writes_json_markdown_and_plot(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
     import json
 
     from PIL import Image
 
+    from gns_bench import autotune
     from gns_bench.bench.report import write_bench_index
     from gns_bench.bench.run import BenchSettings, run_bench
 
+    # a machine with a bf16 unit, so auto's probe times both precisions (without one it times only fp32)
+    monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: autotune.MatmulRates(fp32=184.0, bf16=913.0))
     results = run_bench(tmp_path / "this-machine", BenchSettings.tiny(), log_to_mlflow=False)
     index = write_bench_index(tmp_path).read_text()  # every machine's targets, linking to its tables
     env = results["environment"]  # the CPU's generation beside its model name (one name covers two AMD EPYCs)

@@ -115,7 +115,8 @@ def autotune_target(results: dict[str, Any]) -> dict[str, Any]:
     gap = chosen["step_s"] / best["step_s"] - 1
     return {"target": "train.precision/compile = auto within 5% of the fastest variant",
             "measured": f"auto picked {pick['precision']} {_variant(chosen)} ({chosen['step_s']:.3g} s a step); the "
-                        f"fastest was {best['precision']} {_variant(best)} ({best['step_s']:.3g} s): {gap:+.1%}",
+                        f"fastest was {best['precision']} {_variant(best)} ({best['step_s']:.3g} s): {gap:+.1%}"
+                        + (f" ({pick['note']})" if pick.get("note") else ""),
             "met": gap <= 0.05}
 
 

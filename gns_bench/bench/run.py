@@ -126,7 +126,7 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
     config = TrainConfig(precision="auto", compile="auto" if settings.compile else False)
     choice = autotune.choose(config, model, step, window.shape[0], device, steps, use_cache=False)
     return {"precision": choice.precision, "compiled": choice.compile, "probe_step_s": choice.seconds_per_step,
-            "compile_s": choice.compile_seconds, "steps_assumed": steps}
+            "compile_s": choice.compile_seconds, "steps_assumed": steps, "note": choice.note}
 
 
 def measure_inference(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:

@@ -9,7 +9,10 @@ A campaign goes on on whatever machine a session gets, so the runner holds
   domain sweep, counts where it trained), and
 - a run that began training and resumes from its checkpoint to the kind it began on,
 
-and runs anything else anywhere. `--any-cpu-kind` (`gns-bench sweep`, `gns-bench campaign`) lifts the hold.
+and runs anything else anywhere, except that a run set to train in bf16 waits for a machine whose bf16 products
+outrun its fp32 ones (`autotune.matmul_rates`): where they do not, the machine has no bf16 unit and the run
+would train several times slower than in fp32, and a tier's precision is fixed so that its results do not depend
+on the machine. `--any-cpu-kind` (`gns-bench sweep`, `gns-bench campaign`) lifts every hold.
 A kind is the CPU's family, model and stepping (`devices.cpu_identity`: "AMD EPYC" names two generations
 whose step rates differ), the model name where /proc/cpuinfo says nothing, or the GPU's name.
 """
@@ -24,7 +27,7 @@ if TYPE_CHECKING:  # reports read kinds without torch
     import torch
 
 COMPARED = ("ablation", "study")  # sweep kinds whose runs are compared with each other
-WAITS = "waits for a machine of CPU kind"  # the status of a run held to another kind
+WAITS = "waits for a machine"  # the status of a run held to another kind of machine
 
 
 def kind_of(tags: Mapping[str, str]) -> str:
@@ -55,4 +58,8 @@ def held_kind(kinds: Iterable[str]) -> str:
 
 
 def waiting_status(kind: str, why: str) -> str:
-    return f"{WAITS} {kind} ({why})"
+    return f"{WAITS} of CPU kind {kind} ({why})"
+
+
+def waiting_for_bf16(rates_described: str) -> str:
+    return f"{WAITS} with a bf16 unit (it trains in bf16, and {rates_described})"

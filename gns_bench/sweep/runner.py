@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-from gns_bench import tracking
+from gns_bench import autotune, tracking
 from gns_bench.config import Config, StressConfig, resolve_for_dataset
 from gns_bench.data.format import read_metadata
 from gns_bench.datasets import dataset_complete, dataset_path, ensure_dataset, resolve_for_domain
@@ -318,11 +318,12 @@ def prepare(sweep: SweepSpec, tier: str, data_root: Path, *, generate: bool = Tr
             ) -> tuple[list[PlannedRun], dict[str, str], dict[str, tuple[str, tracking.RunRecord]]]:
     """Plan the runs (those matching `only`, if given) and ensure their datasets. Returns the runs, each
     run's status before running (FINISHED, SUMMARISED, "to run", "shared with <sweep>/<run>", "dataset
-    missing", "waits for a machine of CPU kind ..."), and the shared ones' (key, trained run) by run name:
+    missing", "waits for a machine ..."), and the shared ones' (key, trained run) by run name:
     those another sweep trained with the same key (none when `share` is off). `reports_root`: where the
     committed run summaries are read (none: MLflow's runs only). A run to train waits for another kind of
     machine where `sweep/cpu_kinds.py` holds it there, unless `any_kind`: any of a sweep whose runs are compared,
-    and one that would resume from a checkpoint under `runs_root` (when given) begun on another kind."""
+    one that would resume from a checkpoint under `runs_root` (when given) begun on another kind, and one set to
+    train in bf16 on a machine with no bf16 unit."""
     runs = select_runs(sweep, sweep.plan(tier), only)
     summarised = summarised_runs(reports_root) if reports_root is not None else []
     saved = {r.name: r for r in summarised if r.tags.get("sweep") == sweep.name and r.tags.get("tier") == tier}
@@ -404,7 +405,8 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
     """Set the status of each run to train that `sweep/cpu_kinds.py` holds to another kind of machine: one that
     would resume from a checkpoint begun there, or any of a sweep whose runs are compared with each other, once
     most of its runs that trained did so on another kind (`sources`: the runs other sweeps trained that this
-    one shares, an ablation's default arm, count where they trained)."""
+    one shares, an ablation's default arm, count where they trained); and one set to train in bf16 on a machine
+    with no bf16 unit."""
     to_run = [run for run in runs if status[run.name] == "to run"]
     if not to_run:
         return
@@ -430,6 +432,12 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
             status[run.name] = cpu_kinds.waiting_status(began, "it began training there")
         elif sweep_kind and sweep_kind != here[device]:
             status[run.name] = cpu_kinds.waiting_status(sweep_kind, "its sweep's compared runs trained there")
+        elif run.config.train.precision == "bf16" and not (rates := _matmul_rates(device)).bf16_pays:
+            status[run.name] = cpu_kinds.waiting_for_bf16(rates.describe())
+
+
+def _matmul_rates(device: str) -> autotune.MatmulRates:
+    return autotune.matmul_rates(resolve_device(device))
 
 
 def _datasets_made(datasets: Iterable[tuple[str, str]], seed: int, data_root: Path) -> bool:
