@@ -405,8 +405,8 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
     """Set the status of each run to train that `sweep/cpu_kinds.py` holds to another kind of machine: one that
     would resume from a checkpoint begun there, or any of a sweep whose runs are compared with each other, once
     most of its runs that trained did so on another kind (`sources`: the runs other sweeps trained that this
-    one shares, an ablation's default arm, count where they trained); and one set to train in bf16 on a machine
-    with no bf16 unit."""
+    one shares, an ablation's default arm, count where they trained); and, above the smoke tier, one set to train
+    in bf16 on a machine with no bf16 unit."""
     to_run = [run for run in runs if status[run.name] == "to run"]
     if not to_run:
         return
@@ -432,7 +432,8 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
             status[run.name] = cpu_kinds.waiting_status(began, "it began training there")
         elif sweep_kind and sweep_kind != here[device]:
             status[run.name] = cpu_kinds.waiting_status(sweep_kind, "its sweep's compared runs trained there")
-        elif run.config.train.precision == "bf16" and not (rates := _matmul_rates(device)).bf16_pays:
+        elif (tier != "smoke"  # seconds a run: a slow bf16 costs seconds
+              and run.config.train.precision == "bf16" and not (rates := _matmul_rates(device)).bf16_pays):
             status[run.name] = cpu_kinds.waiting_for_bf16(rates.describe())
 
 

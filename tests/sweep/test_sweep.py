@@ -879,9 +879,9 @@ def test_a_started_run_resumes_only_on_the_kind_it_began_on(sweeps: Path, tmp_pa
 
 def test_a_bf16_run_waits_for_a_machine_with_a_bf16_unit(sweeps: Path, tmp_path: Path,
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    """A run set to train in bf16 waits where bf16 products are slower than fp32's (no bf16 unit: a fallback
-    several times slower than fp32), the status giving the rates; an fp32 run of the same sweep trains; a
-    machine with the unit trains it; --any-cpu-kind trains it anyway."""
+    """Above the smoke tier, a run set to train in bf16 waits where bf16 products are slower than fp32's (no bf16
+    unit: a fallback several times slower than fp32), its status giving the rates; an fp32 run of the same sweep
+    trains; a machine with the unit trains it; --any-cpu-kind trains it anyway; smoke runs (seconds) never wait."""
     from gns_bench import autotune
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
@@ -889,22 +889,23 @@ def test_a_bf16_run_waits_for_a_machine_with_a_bf16_unit(sweeps: Path, tmp_path:
     path.write_text(GRID.replace('"model.message_passing_steps" = [1, 2]\n"train.noise_std" = [0.0, 3e-4]',
                                  '"train.precision" = ["fp32", "bf16"]'))
     sweep = load_sweep(path)
-    roots = dict(data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False, echo=lambda line: None)
     no_unit, unit = autotune.MatmulRates(fp32=35.0, bf16=2.0), autotune.MatmulRates(fp32=184.0, bf16=913.0)
     monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: no_unit)
-    outcomes = {o.name: o for o in run_sweep(sweep, "smoke", **roots)}
-    [bf16] = [name for name in outcomes if "bf16" in name]
-    [fp32] = [name for name in outcomes if "fp32" in name]
-    assert outcomes[fp32].status == "FINISHED"
-    assert outcomes[bf16].status == "WAITING" and outcomes[bf16].error == (
-        "waits for a machine with a bf16 unit (it trains in bf16, and its [4096, 128] x [128, 128] matmul ran 2 "
-        "GFLOP/s in bf16 against 35 in fp32 here)")
-    assert [r.info.run_name for r in runs_of(sweep.experiment)] == [fp32]  # nothing of it started
-    [ran] = [o for o in run_sweep(sweep, "smoke", any_kind=True, **roots) if o.status != "SKIPPED"]
-    assert ran.name == bf16 and ran.status == "FINISHED"
+    runs, status, _ = prepare(sweep, "small", tmp_path / "data", progress=False)
+    [bf16] = [r.name for r in runs if r.config.train.precision == "bf16"]
+    [fp32] = [r.name for r in runs if r.config.train.precision == "fp32"]
+    assert status == {fp32: "to run", bf16: "waits for a machine with a bf16 unit (it trains in bf16, and its "
+                                            "[4096, 128] x [128, 128] matmul ran 2 GFLOP/s in bf16 against 35 in "
+                                            "fp32 here)"}
+    _, status, _ = prepare(sweep, "small", tmp_path / "data", progress=False, any_kind=True)
+    assert set(status.values()) == {"to run"}
     monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: unit)
-    _, status, _ = prepare(sweep, "smoke", tmp_path / "data", generate=False)
-    assert set(status.values()) == {"finished"}
+    _, status, _ = prepare(sweep, "small", tmp_path / "data", progress=False)
+    assert set(status.values()) == {"to run"}
+    monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: no_unit)
+    outcomes = run_sweep(sweep, "smoke", data_root=tmp_path / "data", runs_root=tmp_path / "runs", progress=False,
+                         echo=lambda line: None)
+    assert [o.status for o in outcomes] == ["FINISHED", "FINISHED"]
 
 
 BRANCHES = '''description = "a trunk and an annealed branch of it"
