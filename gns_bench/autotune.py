@@ -7,6 +7,13 @@ nothing is hard-coded: a short probe times a few training steps of each candidat
 the run, on a copy of the model (the run's own weights and optimiser are untouched), and picks the fastest.
 `torch.compile` is chosen only when its saving over the run's steps pays for its compile time.
 
+bf16 is probed only where this machine multiplies in bf16 faster than in fp32 (`matmul_rates`, a fraction of a
+second): a CPU with no bf16 unit runs bf16 products in a slow fallback. On an AMD EPYC family 25 model 1 (AVX2
+only, no AVX-512) the [4096, 128] x [128, 128] product ran 1.5-2.2 GFLOP/s in bf16 against 33-132 in fp32 (one or
+two threads, a shared host's spread), and a training step of the paper's model on 2,000 particles took 30.3 s in
+bf16 autocast against 4.0 s in fp32 (2 threads): a probe of bf16 there would cost minutes to learn what one
+product shows.
+
 The choice is cached per machine (GPU, or CPU model with its family and model number, bf16 features and
 thread count; torch's version), model shape and graph size, in `$GNS_BENCH_CACHE` (default
 `~/.cache/gns-bench/autotune.json`), so a machine probes once per kind of run. The run records what it used

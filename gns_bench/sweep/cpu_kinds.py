@@ -10,9 +10,10 @@ A campaign goes on on whatever machine a session gets, so the runner holds
 - a run that began training and resumes from its checkpoint to the kind it began on,
 
 and runs anything else anywhere, except that a run set to train in bf16 (above the smoke tier, whose runs take
-seconds) waits for a machine whose bf16 products outrun its fp32 ones (`autotune.matmul_rates`): where they do not, the machine has no bf16 unit and the run
-would train several times slower than in fp32, and a tier's precision is fixed so that its results do not depend
-on the machine. `--any-cpu-kind` (`gns-bench sweep`, `gns-bench campaign`) lifts every hold.
+seconds) waits for a machine whose bf16 products outrun its fp32 ones (`autotune.matmul_rates`): where they do
+not, the machine has no bf16 unit and the run would train several times slower than in fp32, and a tier's
+precision is fixed so that its results do not depend on the machine. `--any-cpu-kind` (`gns-bench sweep`,
+`gns-bench campaign`) lifts every hold.
 A kind is the CPU's family, model and stepping (`devices.cpu_identity`: "AMD EPYC" names two generations
 whose step rates differ), the model name where /proc/cpuinfo says nothing, or the GPU's name.
 """
