@@ -437,6 +437,29 @@ def _hold_to_kinds(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: 
             status[run.name] = cpu_kinds.waiting_for_bf16(rates.describe())
 
 
+def changed_data(sweep: SweepSpec, tier: str, runs: list[PlannedRun], status: dict[str, str], data_root: Path,
+                 reports_root: Path | None) -> list[str]:
+    """A line for each run to train whose namesake in the committed run summary trained on other data: a dataset
+    made again on another machine whose solver's floats came out different, or changed. Its key names the data's
+    content hash, so it is another run and trains again; the line says so before it does."""
+    if reports_root is None:
+        return []
+    saved = {r.name: r for r in summarised_runs(reports_root)
+             if r.tags.get("sweep") == sweep.name and r.tags.get("tier") == tier}
+    lines = []
+    for run in runs:
+        record = saved.get(run.name)
+        if status[run.name] != "to run" or record is None or not record.tags.get("dataset_hash"):
+            continue
+        path = training_data(run, data_root)
+        now = read_metadata(path).content_hash or ""
+        if now and now != record.tags["dataset_hash"]:
+            lines.append(f"  {run.name}: trains again: the committed run summary's run trained on data hashed "
+                         f"{record.tags['dataset_hash'][:12]}, and {path} now hashes {now[:12]} (made again on "
+                         "another machine, or changed)")
+    return lines
+
+
 def _matmul_rates(device: str) -> autotune.MatmulRates:
     return autotune.matmul_rates(resolve_device(device))
 
@@ -533,6 +556,8 @@ def start_sweep(sweep: SweepSpec, tier: str, *, data_root: Path = Path("data"), 
     for outcome in waiting:
         echo(f"  {outcome.name}: {outcome.error}"
              + ("; --any-cpu-kind trains it here" if outcome.error.startswith(cpu_kinds.WAITS) else ""))
+    for line in changed_data(sweep, tier, runs, status, data_root, reports_root):
+        echo(line)
     outcomes += [o for o in waiting if not o.error.startswith(WAITS_FOR_TRUNK)]
     if not train:
         pending = []

@@ -763,6 +763,40 @@ def test_every_cpu_gns_run_follows_the_budget_studys_winner() -> None:
     assert checked > 40
 
 
+def test_a_run_whose_data_was_made_again_differently_says_it_trains_again(
+        sweeps: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A dataset made again (a new machine, its store and data gone) whose content hash differs from the one the
+    committed summary's run trained on: the run is another run and trains again, and the plan says so first."""
+    from gns_bench.sweep.runner import start_sweep
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'first.db'}")
+    path = sweeps / "tests" / "one.toml"
+    path.write_text(GRID.replace('"model.message_passing_steps" = [1, 2]\n"train.noise_std" = [0.0, 3e-4]\n', ""))
+    sweep = load_sweep(path)
+    reports, data = tmp_path / "reports", tmp_path / "data"
+    [trained] = run_sweep(sweep, "smoke", data_root=data, runs_root=tmp_path / "runs", progress=False,
+                          reports_root=reports, echo=lambda line: None)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'new.db'}")  # a new machine
+    lines: list[str] = []
+    start_sweep(sweep, "smoke", data_root=data, reports_root=reports, train=False, progress=False,
+                echo=lines.append)
+    assert not any("trains again" in line for line in lines)  # the same data: known finished
+    path.write_text(path.read_text().replace("latent_size = 8", "latent_size = 9"))  # another plan, same data
+    lines.clear()
+    start_sweep(load_sweep(path), "smoke", data_root=data, reports_root=reports, train=False, progress=False,
+                echo=lines.append)
+    assert any("1 to run" in line for line in lines) and not any("trains again" in line for line in lines)
+    [dataset] = [d for d in data.iterdir() if (d / "metadata.json").is_file()]
+    meta = json.loads((dataset / "metadata.json").read_text())
+    old, meta["content_hash"] = meta["content_hash"], "0" * 64
+    (dataset / "metadata.json").write_text(json.dumps(meta))
+    lines.clear()
+    start_sweep(sweep, "smoke", data_root=data, reports_root=reports, train=False, progress=False,
+                echo=lines.append)
+    assert f"  {trained.name}: trains again: the committed run summary's run trained on data hashed {old[:12]}, " \
+           f"and {dataset} now hashes 000000000000 (made again on another machine, or changed)" in lines, lines
+
+
 def test_a_store_that_is_gone_leaves_the_committed_summaries_in_charge(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue #19.5: a campaign resumed on a new machine, its MLflow store and datasets gone, must not train
