@@ -44,7 +44,7 @@ def model(request: pytest.FixtureRequest, data: Path, tmp_path_factory: pytest.T
     precision = request.param
     if precision == "bf16" and not (rates := autotune.matmul_rates(torch.device("cpu"))).bf16_pays:
         # a machine without a bf16 unit runs bf16 products in a slow fallback: this training would take most of
-        # CI's time there, and no run of the suite's trains in bf16 on such a machine (sweep/cpu_kinds.py)
+        # CI's time there, and no sweep above the smoke tier trains in bf16 on one (sweep/cpu_kinds.py)
         pytest.skip(f"no bf16 unit on this machine: {rates.describe()}")
     return checks.trained(data, tmp_path_factory.mktemp(precision), precision, train=BATCH), precision
 
