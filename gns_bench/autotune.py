@@ -7,7 +7,7 @@ nothing is hard-coded: a short probe times a few training steps of each candidat
 the run, on a copy of the model (the run's own weights and optimiser are untouched), and picks the fastest.
 `torch.compile` is chosen only when its saving over the run's steps pays for its compile time.
 
-bf16 is probed only where this machine multiplies in bf16 faster than in fp32 (`matmul_rates`, a fraction of a
+bf16 is probed only where this machine multiplies in bf16 faster than in fp32 (`matmul_rates`, under a
 second): a CPU with no bf16 unit runs bf16 products in a slow fallback. On an AMD EPYC family 25 model 1 (AVX2
 only, no AVX-512) the [4096, 128] x [128, 128] product ran 1.5-2.2 GFLOP/s in bf16 against 33-132 in fp32 (one or
 two threads, a shared host's spread), and a training step of the paper's model on 2,000 particles took 30.3 s in
@@ -38,6 +38,7 @@ import torch
 from gns_bench.config import TrainConfig
 from gns_bench.devices import machine_key
 from gns_bench.model.simulator import LearnedSimulator, Simulator
+from gns_bench.timing import skinny_gemm_gflops
 
 MATMUL_SHAPE = (4096, 128, 128)  # an [E, L] x [L, L] product: the edge MLPs' (Sec. 2, L = 128), the GNS's commonest
 WARM_UP_STEPS = 3  # not timed: allocation, autotuning kernels, and compilation for compiled candidates
@@ -81,28 +82,16 @@ class MatmulRates:
                 f"{self.fp32:.3g} in fp32 here")
 
 
-def matmul_rates(device: torch.device, *, use_cache: bool = True, seconds: float = 0.2) -> MatmulRates:
-    """This machine's rate for the GNS's commonest product in fp32 and in bf16 (each timed for about `seconds`,
-    after one warm-up product), cached per machine like the training probe's choice."""
+def matmul_rates(device: torch.device, *, use_cache: bool = True) -> MatmulRates:
+    """This machine's rate for the GNS's commonest product in fp32 and in bf16 (`timing.skinny_gemm_gflops`, as
+    the bench measures it), cached per machine like the training probe's choice."""
     key = f"{machine_key(device)} | matmul {'x'.join(map(str, MATMUL_SHAPE))}"
     cache = _read_cache()
     if use_cache and key in cache:
         return MatmulRates(**cache[key])
-    rows, inner, cols = MATMUL_SHAPE
-    rates = {}
-    for name, dtype in (("fp32", torch.float32), ("bf16", torch.bfloat16)):
-        a = torch.randn(rows, inner, device=device).to(dtype)
-        b = torch.randn(inner, cols, device=device).to(dtype)
-        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-        a @ b
-        sync()
-        count, started = 0, time.perf_counter()
-        while count == 0 or time.perf_counter() - started < seconds:
-            a @ b
-            sync()
-            count += 1
-        rates[name] = 2 * rows * inner * cols * count / (time.perf_counter() - started) / 1e9
-    result = MatmulRates(**rates)
+    rows, width, _ = MATMUL_SHAPE
+    result = MatmulRates(fp32=skinny_gemm_gflops(rows, width, torch.float32, device),
+                         bf16=skinny_gemm_gflops(rows, width, torch.bfloat16, device))
     cache[key] = asdict(result)
     _write_cache(cache)
     return result

@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,26 +24,10 @@ from gns_bench.model import features
 from gns_bench.model.neighbours import VerletNeighbours
 from gns_bench.model.precision import autocast, compiled_for_inference
 from gns_bench.model.simulator import LearnedSimulator
+from gns_bench.timing import device_sync as _sync
+from gns_bench.timing import skinny_gemm_gflops, timed  # noqa: F401 (the bench's modules import them from here)
 from gns_bench.train.checkpoints import build_simulator
 from gns_bench.train.loop import adam
-
-
-def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Callable[[], None] | None = None
-          ) -> float:
-    """Median wall time of `fn` in seconds."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        if sync:
-            sync()
-        start = time.perf_counter()
-        fn()
-        if sync:
-            sync()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
 
 GEMM_SECONDS = 1.0  # a size whose product takes longer than this is the last one timed
 
@@ -65,18 +47,6 @@ def gemm_peak_gflops(dtype: torch.dtype, device: torch.device, sizes: tuple[int,
         if seconds > GEMM_SECONDS:
             break
     return best
-
-
-def skinny_gemm_gflops(rows: int, width: int, dtype: torch.dtype, device: torch.device, repeats: int = 5) -> float:
-    """The rate of the GEMM shape that dominates the GNS: [E, L] @ [L, L]."""
-    a = torch.randn(rows, width, device=device).to(dtype)
-    b = torch.randn(width, width, device=device).to(dtype)
-    seconds = timed(lambda: a @ b, repeats, sync=_sync(device))
-    return 2 * rows * width * width / seconds / 1e9
-
-
-def _sync(device: torch.device) -> Callable[[], None] | None:
-    return torch.cuda.synchronize if device.type == "cuda" else None
 
 
 def linear_flops(module: torch.nn.Module, rows: int) -> int:

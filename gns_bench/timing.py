@@ -1,0 +1,42 @@
+"""Timing on the device at hand: a median over repeats, and the rate of the GNS's commonest product.
+
+Shared by the bench (`gns_bench/bench/measure.py`) and the speed choices made at run time
+(`gns_bench/autotune.py`).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+
+def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Callable[[], None] | None = None
+          ) -> float:
+    """Median wall time of `fn` in seconds."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if sync:
+            sync()
+        start = time.perf_counter()
+        fn()
+        if sync:
+            sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def skinny_gemm_gflops(rows: int, width: int, dtype: torch.dtype, device: torch.device, repeats: int = 5) -> float:
+    """The rate of the GEMM shape that dominates the GNS: [E, L] @ [L, L]."""
+    a = torch.randn(rows, width, device=device).to(dtype)
+    b = torch.randn(width, width, device=device).to(dtype)
+    seconds = timed(lambda: a @ b, repeats, sync=device_sync(device))
+    return 2 * rows * width * width / seconds / 1e9
+
+
+def device_sync(device: torch.device) -> Callable[[], None] | None:
+    return torch.cuda.synchronize if device.type == "cuda" else None
