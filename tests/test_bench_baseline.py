@@ -142,3 +142,45 @@ def test_a_gpus_report_says_what_its_small_graphs_cost_from_its_own_scaling_rows
     assert first in why_missed(gpu) and last in why_missed(gpu)
     cpu = json.loads((bench / "amd-epyc-family-25-model-17-avx512bf16/bench.json").read_text())
     assert "µs a particle" not in why_missed(cpu)
+
+
+def test_a_machine_with_no_bf16_unit_benches_fp32_alone_and_its_report_says_why(monkeypatch, tmp_path) -> None:
+    """Where bf16 products run in a fallback, the bench times fp32 alone (`bench_precisions`), and the report
+    says which targets were not measured and why, rather than judging them or failing on the missing rows."""
+    import json
+    from pathlib import Path
+
+    from gns_bench import autotune
+    from gns_bench.bench.report import targets, write_bench_index, write_bench_report
+    from gns_bench.bench.run import BenchSettings, bench_precisions, measure_training
+    from gns_bench.report.index import bench_claims
+
+    cpu = torch.device("cpu")
+    monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: autotune.MatmulRates(fp32=92.0, bf16=2.0))
+    precisions, left_out = bench_precisions(BenchSettings(), cpu)
+    assert precisions == ("fp32",) and "ran 2 GFLOP/s in bf16 against 92 in fp32" in left_out
+    assert bench_precisions(BenchSettings(precisions=("fp32", "bf16")), cpu) == (("fp32", "bf16"), "")  # as asked
+    monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: autotune.MatmulRates(fp32=184.0, bf16=913.0))
+    assert bench_precisions(BenchSettings(), cpu) == (("fp32", "bf16"), "")
+    rows = measure_training(BenchSettings.tiny(), cpu, ("fp32",))
+    assert {r["precision"] for r in rows} == {"fp32"} and len(rows) == 2  # ours and the PyG port
+
+    # a committed two-precision run with its bf16 rows taken out stands for such a machine's results
+    committed = Path(__file__).parents[1] / "reports/bench/amd-epyc-family-26-model-2-avx512bf16/bench.json"
+    results = json.loads(committed.read_text())
+    for section in ("train", "inference", "skips", "static_encodings"):
+        results[section] = [r for r in results[section] if r["precision"] == "fp32"]
+    results["left_out"] = left_out
+    judged = {t["target"]: t for t in targets(results)}
+    bf16 = [t for name, t in judged.items() if "bf16" in name]
+    assert len(bf16) == 3 and all(t["met"] is None and left_out in t["measured"] for t in bf16)
+    assert all(isinstance(t["met"], bool) for name, t in judged.items() if "bf16" not in name)
+    folder = tmp_path / "bench" / "no-bf16-unit"
+    folder.mkdir(parents=True)
+    (folder / "bench.json").write_text(json.dumps(results))
+    readme = write_bench_report(results, folder)[0].read_text()
+    assert "| not measured |" in readme and "which this machine cannot speed up (bf16 left out" in readme
+    assert "our fastest bf16 step" not in readme
+    write_bench_index(tmp_path / "bench")
+    claims = "\n".join(bench_claims(tmp_path))
+    assert "(bf16) (gns-bench's own target) | bench |" in claims and "| not measured |" in claims

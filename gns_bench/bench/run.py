@@ -58,6 +58,9 @@ class BenchSettings:
     compile: bool = True  # also time the training step under torch.compile (~1 min of compilation each)
     # ... and the rollout step of these domains as `eval.compile` runs it (~15 s of compiling each)
     compiled_rollout_domains: tuple[str, ...] = ("waterdrop",)
+    # the precisions every variant is timed in; empty: fp32, and bf16 where this machine multiplies faster in it
+    # (`bench_precisions`)
+    precisions: tuple[str, ...] = ()
 
     @classmethod
     def quick(cls) -> BenchSettings:
@@ -72,21 +75,34 @@ class BenchSettings:
                    repeats=1, gemm_sizes=(256,), compile=False)
 
 
-def measure_training(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
+def bench_precisions(settings: BenchSettings, device: torch.device) -> tuple[tuple[str, ...], str]:
+    """The precisions to time every variant in, and what was left out and why. Given ones are kept. Otherwise
+    fp32, and bf16 where its products run faster than fp32's (`autotune.matmul_rates`): a CPU with no bf16 unit
+    runs them in a fallback, where the bench's bf16 rows would take hours to say what one product shows (on an
+    AVX2-only AMD EPYC, family 25 model 1, a 4096-square bf16 product ran over a minute)."""
+    if settings.precisions:
+        return tuple(settings.precisions), ""
+    rates = autotune.matmul_rates(device)
+    if rates.bf16_pays:
+        return ("fp32", "bf16"), ""
+    return ("fp32",), f"bf16 left out: {rates.describe()} (no bf16 unit)"
+
+
+def measure_training(settings: BenchSettings, device: torch.device, precisions: tuple[str, ...] = ("fp32", "bf16")
+                     ) -> list[dict[str, Any]]:
     scene = synthetic_scene(settings.train_particles, 2)
     rows = []
-    peaks = {p: gemm_peak_gflops(dtype, device, settings.gemm_sizes, settings.repeats)
-             for p, dtype in GEMM_DTYPE.items()}
+    peaks = {p: gemm_peak_gflops(GEMM_DTYPE[p], device, settings.gemm_sizes, settings.repeats) for p in precisions}
     model = build_model(ModelConfig(), scene, device)
     edges = int(model.build_graph(scene.window[:, -1].to(device)).shape[1])
-    skinny = {p: skinny_gemm_gflops(edges, 128, dtype, device) for p, dtype in GEMM_DTYPE.items()}
+    skinny = {p: skinny_gemm_gflops(edges, 128, GEMM_DTYPE[p], device) for p in precisions}
     flops = 3 * forward_flops(model, scene.window.shape[0], edges)  # forward + backward ~ 3 x forward
     variants = [(OURS, False, lambda: build_model(ModelConfig(), scene, device)),
                 (BASELINE, False, lambda: concatenated_baseline(build_model(ModelConfig(), scene, device)))]
     if settings.compile:
         variants.insert(1, (OURS, True, lambda: build_model(ModelConfig(), scene, device)))
     for name, compiled, make in variants:
-        for precision in ("fp32", "bf16"):
+        for precision in precisions:
             seconds, loss = train_step_seconds(make(), scene, device, precision, settings.repeats, compiled)
             rate = flops / seconds / 1e9
             rows.append({"model": name, "compiled": compiled, "precision": precision,
@@ -105,9 +121,9 @@ def measure_steadiness(train: list[dict[str, Any]], settings: BenchSettings, dev
     2,368 bf16 GFLOP/s in one session and 679 in another) and can drift within one; ratios of numbers taken
     minutes apart are only as good as it holds."""
     start = {row["precision"]: row["gemm_peak_gflops"] for row in train}
-    return {precision: {"start": start[precision],
-                        "end": gemm_peak_gflops(dtype, device, settings.gemm_sizes, settings.repeats)}
-            for precision, dtype in GEMM_DTYPE.items()}
+    return {precision: {"start": rate,
+                        "end": gemm_peak_gflops(GEMM_DTYPE[precision], device, settings.gemm_sizes, settings.repeats)}
+            for precision, rate in start.items()}
 
 
 def measure_autotune(settings: BenchSettings, device: torch.device, steps: int = 20_000) -> dict[str, Any]:
@@ -129,7 +145,8 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
             "compile_s": choice.compile_seconds, "steps_assumed": steps, "note": choice.note}
 
 
-def measure_inference(settings: BenchSettings, device: torch.device) -> list[dict[str, Any]]:
+def measure_inference(settings: BenchSettings, device: torch.device, precisions: tuple[str, ...] = ("fp32", "bf16")
+                      ) -> list[dict[str, Any]]:
     """A rollout step of each domain's size, eager in fp32 and bf16, then compiled (`eval.compile`) for
     `settings.compiled_rollout_domains` when `settings.compile` (compiled last: see `rollout_breakdown`).
     Each row carries the time the network's matmuls alone need at the [E, 128] x [128, 128] GEMM rate
@@ -142,7 +159,7 @@ def measure_inference(settings: BenchSettings, device: torch.device) -> list[dic
     for compiled, (domain, dim, particles) in variants:
         scene = synthetic_scene(particles, dim, default_connectivity_radius(domain))  # as its datasets carry it
         model = build_model(ModelConfig(), scene, device)
-        for precision in ("fp32", "bf16"):
+        for precision in precisions:
             b = rollout_breakdown(model, scene, device, precision, settings.repeats, compiled)
             dtype = GEMM_DTYPE[precision]
             if (b.num_edges, precision) not in skinny:
@@ -225,16 +242,20 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
                         "torch": torch.__version__, "threads": torch.get_num_threads()},
         "settings": asdict(settings),
     }
-    print(f"bench on {results['environment']['hardware']}: training step...", flush=True)
-    results["train"] = measure_training(settings, device)
+    precisions, left_out = bench_precisions(settings, device)
+    results["precisions"], results["left_out"] = list(precisions), left_out
+    print(f"bench on {results['environment']['hardware']} ({', '.join(precisions)}"
+          f"{'; ' + left_out if left_out else ''}): training step...", flush=True)
+    results["train"] = measure_training(settings, device, precisions)
     print("what train.precision/compile = auto picks...", flush=True)
     results["autotune"] = measure_autotune(settings, device)
     print("rollout steps of the paper's domains...", flush=True)
-    results["inference"] = measure_inference(settings, device)
+    results["inference"] = measure_inference(settings, device, precisions)
     print("the kinematic particles' skip...", flush=True)
-    results["skips"] = skips.measure(settings.train_particles, repeats=settings.repeats)
+    results["skips"] = skips.measure(settings.train_particles, repeats=settings.repeats, precisions=precisions)
     print("the static encodings' reuse...", flush=True)
-    results["static_encodings"] = skips.measure_encodings(settings.train_particles, repeats=settings.repeats)
+    results["static_encodings"] = skips.measure_encodings(settings.train_particles, repeats=settings.repeats,
+                                                          precisions=precisions)
     print("windows a one-step forward...", flush=True)
     results["one_step"] = one_step.measure(repeats=settings.repeats)
     print("scaling in particle count...", flush=True)

@@ -124,17 +124,19 @@ def encodings_row(name: str, scene: Scene, floor: torch.Tensor, precision: str, 
             "speedup": encoded / reused, "max_difference": float(difference)}
 
 
-def measure_encodings(particles: int = 2000, repeats: int = 7) -> list[dict[str, Any]]:
+def measure_encodings(particles: int = 2000, repeats: int = 7, precisions: tuple[str, ...] = ("fp32", "bf16")
+                      ) -> list[dict[str, Any]]:
     scenes = [(f"synthetic, {share:.0%} a fixed floor", *with_static_floor(synthetic_scene(particles, 2), share))
               for share in FLOOR_SHARES]
     return [encodings_row(name, scene, floor, precision, repeats) for name, scene, floor in scenes
-            for precision in ("fp32", "bf16")]
+            for precision in precisions]
 
 
-def measure(particles: int = 2000, datasets: tuple[Path, ...] = (), repeats: int = 7) -> list[dict[str, Any]]:
+def measure(particles: int = 2000, datasets: tuple[Path, ...] = (), repeats: int = 7,
+            precisions: tuple[str, ...] = ("fp32", "bf16")) -> list[dict[str, Any]]:
     scenes = [(f"synthetic, {share:.0%} kinematic", with_kinematic_share(synthetic_scene(particles, 2), share))
               for share in SHARES] + [dataset_scene(path) for path in datasets]
-    return [skip_row(name, scene, precision, repeats) for name, scene in scenes for precision in ("fp32", "bf16")]
+    return [skip_row(name, scene, precision, repeats) for name, scene in scenes for precision in precisions]
 
 
 def markdown(rows: list[dict[str, Any]], hardware: str) -> str:

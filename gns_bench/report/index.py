@@ -364,9 +364,10 @@ def bench_claims(reports_root: Path) -> list[str]:
     rows = []
     for target, measured in by_target.items():
         ours = "; ".join(f"{hardware}: {value}" for hardware, value, _, _ in measured)
-        met = sum(ok for _, _, ok, _ in measured)
-        verdict = ("met" if met == len(measured) else "not met" if not met else
-                   f"met on {met} of {len(measured)} machines")
+        judged = [ok for _, _, ok, _ in measured if ok is not None]  # None: that machine left the target out
+        met = sum(judged)
+        verdict = ("not measured" if not judged else "met" if met == len(judged) else "not met" if not met else
+                   f"met on {met} of {len(judged)} machines")
         links = ", ".join(f"[{folder}](bench/{folder}/README.md)" for _, _, _, folder in measured)
         rows.append(f"| {target} (gns-bench's own target) | bench | {ours} | — | {verdict} | {links} |")
     return rows
