@@ -1,4 +1,5 @@
-"""`train.precision = "auto"` and `train.compile = "auto"`: the fastest settings for this machine, measured.
+"""`train.precision`, `train.compile` and `train.num_threads` = "auto": the fastest settings for this machine,
+measured.
 
 What is fastest differs between the machines gns-bench runs on: on an Intel Xeon with AMX, bf16 with
 `torch.compile` was fastest; on an AMD EPYC with AVX-512 BF16 and no AMX, bf16 eager beat bf16 compiled
@@ -54,14 +55,72 @@ class SpeedSettings:
     seconds_per_step: dict[str, float] = field(default_factory=dict)  # "<precision>[+compile]" -> seconds
     compile_seconds: float = 0.0
     note: str = ""  # what the choice did not measure, and why (bf16 on a machine with no fast bf16 matmul)
+    threads: ThreadChoice | None = None  # `train.num_threads = "auto"`: the count chosen, and how
 
     def describe(self) -> str:
         settings = f"{self.precision}{' compiled' if self.compile else ''}"
         note = f"; {self.note}" if self.note else ""
+        threads = f"; {self.threads.describe()}" if self.threads else ""
         if self.source == "given":
-            return settings + (f" ({self.note})" if self.note else "")
+            return settings + (f" ({self.note})" if self.note else "") + threads
         timings = ", ".join(f"{name} {seconds:.3g} s" for name, seconds in sorted(self.seconds_per_step.items()))
-        return f"{settings} ({self.source}: {timings + ' a step' if timings else 'nothing to time'}{note})"
+        return f"{settings} ({self.source}: {timings + ' a step' if timings else 'nothing to time'}{note}){threads}"
+
+    @classmethod
+    def from_dict(cls, saved: dict) -> SpeedSettings:
+        """As `dataclasses.asdict` wrote it (a checkpoint's, a cache's)."""
+        threads = saved.get("threads")
+        return cls(**{**saved, "threads": ThreadChoice(**threads) if threads else None})
+
+
+# `train.num_threads = "auto"`: torch's intra-op threads are not always faster in numbers. On an AMD EPYC family 25
+# model 1 (AVX2 only, 2 cores, a KVM guest) a training step of the paper's model on 2,000 particles took 4.03 s
+# with two threads against 2.64 s with one (glibc's malloc kept mapped), though its fp32 matmuls ran faster on two.
+THREAD_MARGIN = 0.95  # fewer threads than cores are chosen only when they take at most this share of all cores' time
+
+
+@dataclass(frozen=True)
+class ThreadChoice:
+    threads: int
+    seconds_per_step: dict[str, float] = field(default_factory=dict)  # thread count (as text) -> seconds a step
+    source: str = "probed"  # "probed", "cached", or "one core" (nothing to choose)
+
+    def describe(self) -> str:
+        timings = ", ".join(f"{count} {seconds:.3g} s" for count, seconds in
+                            sorted(self.seconds_per_step.items(), key=lambda item: int(item[0])))
+        return (f"{self.threads} thread{'' if self.threads == 1 else 's'} ({self.source}"
+                f"{': ' + timings + ' a step by thread count' if timings else ''})")
+
+
+def thread_counts(cores: int) -> list[int]:
+    """The thread counts a probe times on `cores` usable cores: one, the powers of two between, and all."""
+    return sorted({cores, *(2 ** k for k in range(cores.bit_length()) if 2 ** k <= cores)})
+
+
+def choose_threads(step: Callable[[], None], key: str, cores: int, *, use_cache: bool = True,
+                   clock: Callable[[], float] = time.perf_counter) -> ThreadChoice:
+    """The torch thread count to train with on `cores` usable cores, set before it returns: each of
+    `thread_counts(cores)` times `step()` (one training step on a copy of the model), and a count below all cores
+    is chosen when it is faster by `THREAD_MARGIN`. Cached under `key` (the machine, the model, the graph size)."""
+    counts = thread_counts(cores)
+    cache = _read_cache()
+    full_key = f"{key} | threads {'/'.join(map(str, counts))}"
+    if len(counts) == 1:
+        choice = ThreadChoice(cores, source="one core")
+    elif use_cache and full_key in cache:
+        choice = ThreadChoice(**{**cache[full_key], "source": "cached"})
+    else:
+        timings = {}
+        for count in counts:
+            torch.set_num_threads(count)
+            timings[str(count)], _ = _time(step, clock)
+        fastest = min(timings, key=timings.get)
+        chosen = int(fastest) if timings[fastest] <= THREAD_MARGIN * timings[str(cores)] else cores
+        choice = ThreadChoice(chosen, timings)
+        cache[full_key] = {k: v for k, v in asdict(choice).items() if k != "source"}
+        _write_cache(cache)
+    torch.set_num_threads(choice.threads)
+    return choice
 
 
 @dataclass(frozen=True)
@@ -142,7 +201,7 @@ def choose(config: TrainConfig, simulator: Simulator, step_fn: Callable[[Learned
     key = cache_key(config, simulator, nodes, device)
     cache = _read_cache()
     if use_cache and key in cache:
-        return SpeedSettings(**{**cache[key], "source": "cached"})
+        return SpeedSettings.from_dict({**cache[key], "source": "cached"})
     timings, compile_seconds = {}, 0.0
     for precision, compiled in options:
         model = copy.deepcopy(simulator)
@@ -195,7 +254,7 @@ def choose_rollout_compile(simulator: Simulator, rollout_step: Callable[[Simulat
            f"D{simulator.dim} | ~{2 ** round(math.log2(max(nodes, 1)))} nodes | {precision}")
     cache = _read_cache()
     if use_cache and key in cache:
-        return SpeedSettings(**{**cache[key], "source": "cached"}), None
+        return SpeedSettings.from_dict({**cache[key], "source": "cached"}), None
     eager, _ = _time(lambda: rollout_step(simulator))
     compiled_model = compiled_for_inference(simulator)
     compiled, compile_seconds = _time(lambda: rollout_step(compiled_model))

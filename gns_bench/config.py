@@ -146,7 +146,9 @@ class TrainConfig:
     init_from: str = ""
     log_every: int = 100
     device: str = "auto"  # "auto" picks CUDA when present
-    num_threads: int | None = None  # torch CPU threads; None keeps torch's default
+    # torch CPU threads; None: every usable core. "auto": the count that trains fastest here, measured by a short
+    # probe (gns_bench/autotune.py): on an AVX2-only AMD EPYC two threads made a step slower than one.
+    num_threads: int | Literal["auto"] | None = None
     # bf16: autocast the network (features and loss stay fp32). "auto": whichever trains fastest on this
     # machine, measured by a short probe (gns_bench/autotune.py); the run records what it used.
     precision: Literal["fp32", "bf16", "auto"] = "fp32"
@@ -187,7 +189,8 @@ class TrainConfig:
         _require(0.0 <= self.weight_average < 1.0, "train.weight_average", "must be in [0, 1) (0 turns it off)")
         _require(self.checkpoint_every >= 1, "train.checkpoint_every", "must be >= 1")
         _require(self.log_every >= 1, "train.log_every", "must be >= 1")
-        _require(self.num_threads is None or self.num_threads >= 1, "train.num_threads", "must be >= 1")
+        _require(self.num_threads in (None, "auto") or (isinstance(self.num_threads, int) and self.num_threads >= 1),
+                 "train.num_threads", "must be >= 1, or \"auto\"")
         _require(self.max_wall_seconds is None or self.max_wall_seconds > 0, "train.max_wall_seconds", "must be > 0")
         _require(self.learning_rate_warmup_steps >= 0, "train.learning_rate_warmup_steps", "must be >= 0")
         _require(0 <= self.learning_rate_anneal_steps <= self.steps, "train.learning_rate_anneal_steps",
@@ -474,6 +477,13 @@ def _require(condition: bool, key: str, message: str) -> None:
         raise ConfigError(f"{key}: {message}")
 
 
+def _expected(annotation: Any) -> str:
+    """What a value of a field's type looks like, for an error message."""
+    if typing.get_origin(annotation) is Literal:
+        return f"one of {list(typing.get_args(annotation))}"
+    return getattr(annotation, "__name__", str(annotation))
+
+
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
     """Check `value` against a field's type annotation (bool, int, float, str, Literal, Optional)."""
     origin = typing.get_origin(annotation)
@@ -491,7 +501,10 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
                 return _coerce(value, arg, key)
             except ConfigError as exc:
                 errors.append(str(exc))
-        raise ConfigError(errors[0])
+        if len(errors) == 1:
+            raise ConfigError(errors[0])
+        raise ConfigError(f"{key}: expected {' or '.join(_expected(a) for a in args if a is not type(None))}, "
+                          f"got {value!r}")
     if origin is list:
         (item,) = typing.get_args(annotation)
         if isinstance(value, list | tuple):

@@ -212,6 +212,8 @@ def train_run(config: Config, dataset_dir: str | Path, out_dir: str | Path, *,
             run.set_tags({"train/precision_used": result.speed.precision,
                           "train/compile_used": str(result.speed.compile),
                           "train/speed_settings": result.speed.describe()})
+            if result.speed.threads is not None:  # the thread count was chosen after the run's tags were set
+                run.set_tags({"hardware": tracking.hardware_description(device)})
         run.log_artifact(result.checkpoint, "checkpoint")
         metrics: dict[str, float] = {}
         if evaluate_after:

@@ -9,6 +9,7 @@ continues as if it had never stopped.
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import json
 import math
@@ -182,9 +183,10 @@ class StepClock:
 
 def _speed_settings(config: Config, simulator: Simulator, sampler: WindowSampler, device: torch.device,
                     world_size: int, steps_left: int) -> autotune.SpeedSettings:
-    """The precision and compile setting to train with: the config's, or for "auto" the fastest on this
-    machine (`autotune.choose`). Under data parallelism every rank must agree without a probe of its own:
-    "auto" trains in fp32, uncompiled."""
+    """The precision and compile setting to train with, and with `train.num_threads = "auto"` the thread count
+    (set here): the config's, or for "auto" the fastest on this machine (`autotune.choose_threads`, then
+    `autotune.choose` at that count). Under data parallelism every rank must agree without a probe of its own:
+    "auto" trains in fp32, uncompiled, on every core of the rank."""
     tc = config.train
     if world_size > 1:
         return autotune.SpeedSettings("fp32" if tc.precision == "auto" else tc.precision,
@@ -201,7 +203,15 @@ def _speed_settings(config: Config, simulator: Simulator, sampler: WindowSampler
         optimiser.step()
         float(loss.detach())
 
-    return autotune.choose(tc, simulator, probe_step, batch.window.shape[0], device, steps_left)
+    nodes = batch.window.shape[0]
+    threads = None
+    if tc.num_threads == "auto" and device.type == "cpu":  # before the precision probe: its timings depend on it
+        model, precision = copy.deepcopy(simulator), "fp32" if tc.precision == "auto" else tc.precision
+        key = f"{autotune.cache_key(tc, simulator, nodes, device)} | {precision}"
+        threads = autotune.choose_threads(lambda: probe_step(model, precision), key, usable_cores())
+        del model
+    speed = autotune.choose(tc, simulator, probe_step, nodes, device, steps_left)
+    return dataclasses.replace(speed, threads=threads)
 
 
 def load_training_split(config: Config, dataset_dir: str | Path, metadata: Metadata) -> list[Trajectory]:
@@ -249,7 +259,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     `train.batch_size` graphs of every step's batch; only rank 0 logs and writes checkpoints.
     """
     tc = config.train
-    threads = set_threads(tc.num_threads)
+    threads = set_threads(None if tc.num_threads == "auto" else tc.num_threads)  # "auto": chosen below
     allocator = apply_allocator(tc.allocator)
     device = resolve_device(tc.device)
     group = distributed.from_environment(device)
@@ -287,7 +297,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         step = int(saved["step"])
         earlier_wall_time = float(saved.get("wall_time_s", 0.0))
         if "speed" in saved:  # a resumed run trains on with the settings it chose
-            speed = autotune.SpeedSettings(**saved["speed"])
+            speed = autotune.SpeedSettings.from_dict(saved["speed"])
         # the losses since the last logged point, so the next point averages the same steps as without a stop
         resumed_window = [float(v) for v in saved.get("log_window", [])]
         # a resume evaluates the curve point a stop cut short; a branch starts where its trunk's curve has it
@@ -300,6 +310,8 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         average.load_state_dict(saved_average)
     if speed is None:
         speed = _speed_settings(config, simulator, sampler, device, group.world_size, tc.steps - step)
+    if speed.threads is not None and tc.num_threads == "auto":  # chosen now, or by the run this resumes
+        threads = set_threads(speed.threads.threads)
     if speed.compile:
         simulator.network.compile(dynamic=True)  # in place: parameter names and checkpoints unchanged
     model = group.wrap(simulator)

@@ -120,3 +120,95 @@ def test_matmul_rates_are_measured_once_per_machine(tmp_path: Path, monkeypatch:
     assert autotune.matmul_rates(torch.device("cpu")) == rates  # from the cache
     with pytest.raises(AssertionError, match="measured again"):
         autotune.matmul_rates(torch.device("cpu"), use_cache=False)
+
+
+def test_thread_counts_cover_one_the_powers_of_two_and_every_core() -> None:
+    assert autotune.thread_counts(1) == [1]
+    assert autotune.thread_counts(2) == [1, 2]
+    assert autotune.thread_counts(6) == [1, 2, 4, 6]
+    assert autotune.thread_counts(16) == [1, 2, 4, 8, 16]
+
+
+# seconds a training step took by thread count: an AVX2-only AMD EPYC's (family 25 model 1, 2,000 particles),
+# and a machine where the second thread helps a little
+AVX2_EPYC = {1: 2.64, 2: 4.03}
+TWO_HELP_A_LITTLE = {1: 1.02, 2: 1.0}
+
+
+def fake_clock(seconds_by_threads: dict[int, float]):
+    """A step that takes, on a clock of its own, what a step took on `seconds_by_threads`'s machine at torch's
+    current thread count."""
+    now = [0.0]
+
+    def step() -> None:
+        now[0] += seconds_by_threads[torch.get_num_threads()]
+
+    return step, lambda: now[0]
+
+
+@pytest.mark.parametrize("machine, chosen", [(AVX2_EPYC, 1), (TWO_HELP_A_LITTLE, 2), ({1: 0.97, 2: 1.0}, 2)])
+def test_the_thread_probe_picks_fewer_threads_only_where_they_are_clearly_faster(
+        machine: dict[int, float], chosen: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
+    before = torch.get_num_threads()
+    try:
+        step, clock = fake_clock(machine)
+        choice = autotune.choose_threads(step, "a machine | a model", 2, clock=clock)
+        assert choice.threads == chosen and torch.get_num_threads() == chosen  # set before it returns
+        assert choice.source == "probed" and choice.seconds_per_step == pytest.approx(
+            {str(k): v for k, v in machine.items()})
+        assert f"{chosen} thread" in choice.describe() and "a step by thread count" in choice.describe()
+
+        def must_not_run() -> None:
+            raise AssertionError("a cached choice must not time steps")
+
+        again = autotune.choose_threads(must_not_run, "a machine | a model", 2)
+        assert (again.threads, again.source) == (chosen, "cached")
+        assert autotune.choose_threads(must_not_run, "a machine | a model", 1).source == "one core"
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_num_threads_auto_trains_on_the_probed_count_and_a_resume_keeps_it(
+        tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gns_bench.train import loop
+
+    monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(loop, "usable_cores", lambda: 2)  # whatever cores the test machine has
+    monkeypatch.setattr(loop, "set_threads", lambda requested: torch.set_num_threads(requested or 2) or
+                        torch.get_num_threads())
+    seen: list[int] = []  # torch's thread count at each logged step
+
+    def on_log(step: int, metrics: dict) -> None:
+        seen.append(torch.get_num_threads())
+
+    def probe_with(machine: dict[int, float]) -> None:
+        step_seconds = machine
+
+        def timed(step, clock=None):
+            step()  # the probe's step runs, its time taken from the machine described
+            return step_seconds[torch.get_num_threads()], 0.0
+
+        monkeypatch.setattr(autotune, "_time", timed)
+
+    before = torch.get_num_threads()
+    try:
+        probe_with(AVX2_EPYC)
+        config = load_config(None, QUICK + ["train.steps=10", "train.num_threads=auto"])
+        first = train(config, tiny_dataset, tmp_path / "a", progress=False, on_log=on_log)
+        assert first.speed.threads.threads == 1 and first.speed.threads.source == "probed"
+        assert seen and set(seen) == {1}
+        assert "1 thread (probed: 1 2.64 s, 2 4.03 s a step by thread count)" in first.speed.describe()
+        saved = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+        assert saved["speed"]["threads"]["threads"] == 1
+        probe_with(TWO_HELP_A_LITTLE)  # the machine changed its mind: a resume must not ask again
+        seen.clear()
+        torch.set_num_threads(2)
+        longer = load_config(None, QUICK + ["train.steps=20", "train.num_threads=auto"])
+        resumed = train(longer, tiny_dataset, tmp_path / "a", resume=True, progress=False, on_log=on_log)
+        assert resumed.speed.threads.threads == 1 and set(seen) == {1}
+        fixed = train(load_config(None, QUICK + ["train.steps=5", "train.num_threads=2"]), tiny_dataset,
+                      tmp_path / "b", progress=False)
+        assert fixed.speed.threads is None and torch.get_num_threads() == 2  # a given count is not probed
+    finally:
+        torch.set_num_threads(before)
