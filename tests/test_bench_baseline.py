@@ -60,6 +60,7 @@ def test_bench_writes_json_markdown_and_plot(tmp_path, monkeypatch: pytest.Monke
     from gns_bench import autotune
     from gns_bench.bench.report import write_bench_index
     from gns_bench.bench.run import BenchSettings, run_bench
+    from gns_bench.devices import usable_cores
 
     # a machine with a bf16 unit, so auto's probe times both precisions (without one it times only fp32)
     monkeypatch.setattr(autotune, "matmul_rates", lambda device, **kw: autotune.MatmulRates(fp32=184.0, bf16=913.0))
@@ -79,6 +80,10 @@ def test_bench_writes_json_markdown_and_plot(tmp_path, monkeypatch: pytest.Monke
     pick = saved["autotune"]  # what train.precision = "auto" picks, judged against the variants timed at length
     assert pick["precision"] in ("fp32", "bf16") and set(pick["probe_step_s"]) == {"fp32", "bf16"}
     assert "auto within 5% of the fastest variant" in readme and f"auto picked {pick['precision']}" in readme
+    threads = pick["threads"]  # and what train.num_threads = "auto" picks, the bench's own count restored after
+    assert set(threads["step_s"]) == {str(n) for n in autotune.thread_counts(usable_cores())}
+    assert f"num_threads = auto picked {threads['chosen']} (fp32 eager" in readme
+    assert torch.get_num_threads() == env["threads"]
     assert "waterdrop rollout step <= 25 ms (bf16" in readme and "its matmuls alone need" in readme
     rates = saved["steadiness"]  # the square-GEMM rate again at the end, beside the start's the rows were judged by
     assert set(rates) == {"fp32", "bf16"} and all(r["end"] > 0 for r in rates.values())

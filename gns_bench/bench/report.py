@@ -118,6 +118,12 @@ def rollout_target(results: dict[str, Any]) -> dict[str, Any]:
 def autotune_target(results: dict[str, Any]) -> dict[str, Any]:
     """`auto` (a short probe) must pick a variant within 5% of the fastest of ours the bench timed."""
     pick = results["autotune"]
+    threads = ""
+    if pick.get("threads"):  # what `train.num_threads = "auto"` picked (fp32 steps, the bench on every core)
+        timings = ", ".join(f"{count} {seconds:.3g} s" for count, seconds in
+                            sorted(pick["threads"]["step_s"].items(), key=lambda item: int(item[0])))
+        threads = (f"; num_threads = auto picked {pick['threads']['chosen']} (fp32 eager, a step by thread count: "
+                   f"{timings})")
     ours = [r for r in results["train"] if r["model"].startswith("gns-bench")]
     best = min(ours, key=lambda r: r["step_s"])
     chosen = next((r for r in ours
@@ -130,7 +136,7 @@ def autotune_target(results: dict[str, Any]) -> dict[str, Any]:
     return {"target": "train.precision/compile = auto within 5% of the fastest variant",
             "measured": f"auto picked {pick['precision']} {_variant(chosen)} ({chosen['step_s']:.3g} s a step); the "
                         f"fastest was {best['precision']} {_variant(best)} ({best['step_s']:.3g} s): {gap:+.1%}"
-                        + (f" ({pick['note']})" if pick.get("note") else ""),
+                        + (f" ({pick['note']})" if pick.get("note") else "") + threads,
             "met": gap <= 0.05}
 
 

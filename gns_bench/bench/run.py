@@ -30,7 +30,7 @@ from gns_bench.bench.measure import (
 )
 from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.datasets import default_connectivity_radius
-from gns_bench.devices import cpu_generation, resolve_device
+from gns_bench.devices import cpu_generation, resolve_device, usable_cores
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
@@ -141,8 +141,17 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
 
     config = TrainConfig(precision="auto", compile="auto" if settings.compile else False)
     choice = autotune.choose(config, model, step, window.shape[0], device, steps, use_cache=False)
-    return {"precision": choice.precision, "compiled": choice.compile, "probe_step_s": choice.seconds_per_step,
-            "compile_s": choice.compile_seconds, "steps_assumed": steps, "note": choice.note}
+    picked = {"precision": choice.precision, "compiled": choice.compile, "probe_step_s": choice.seconds_per_step,
+              "compile_s": choice.compile_seconds, "steps_assumed": steps, "note": choice.note}
+    if device.type == "cpu":  # and what `train.num_threads = "auto"` picks, in fp32; the bench runs on every core
+        threads, probe_model = torch.get_num_threads(), build_model(ModelConfig(), scene, device)
+        try:
+            counts = autotune.choose_threads(lambda: step(probe_model, "fp32"), "bench", usable_cores(),
+                                             use_cache=False)
+        finally:
+            torch.set_num_threads(threads)
+        picked["threads"] = {"chosen": counts.threads, "step_s": counts.seconds_per_step}
+    return picked
 
 
 def measure_inference(settings: BenchSettings, device: torch.device, precisions: tuple[str, ...] = ("fp32", "bf16")
