@@ -73,9 +73,10 @@ class SpeedSettings:
         return cls(**{**saved, "threads": ThreadChoice(**threads) if threads else None})
 
 
-# `train.num_threads = "auto"`: torch's intra-op threads are not always faster in numbers. On an AMD EPYC family 25
-# model 1 (AVX2 only, 2 cores, a KVM guest) a training step of the paper's model on 2,000 particles took 4.03 s
-# with two threads against 2.64 s with one (glibc's malloc kept mapped), though its fp32 matmuls ran faster on two.
+# `train.num_threads = "auto"`: torch's intra-op threads are not always faster in numbers, and what they buy is not
+# a constant of the CPU model. On an AMD EPYC family 25 model 1 (AVX2 only, 2 cores, a KVM guest) a training step of
+# the paper's model on 2,000 particles took 4.03 s with two threads against 2.64 s with one in one session, and
+# 1.69 s against 2.39 s in the next (reports/NOTES.md).
 THREAD_MARGIN = 0.95  # fewer threads than cores are chosen only when they take at most this share of all cores' time
 
 

@@ -147,7 +147,8 @@ class TrainConfig:
     log_every: int = 100
     device: str = "auto"  # "auto" picks CUDA when present
     # torch CPU threads; None: every usable core. "auto": the count that trains fastest here, measured by a short
-    # probe (gns_bench/autotune.py): on an AVX2-only AMD EPYC two threads made a step slower than one.
+    # probe (gns_bench/autotune.py): on an AVX2-only AMD EPYC two threads made a step slower than one in one session
+    # and faster in the next.
     num_threads: int | Literal["auto"] | None = None
     # bf16: autocast the network (features and loss stay fp32). "auto": whichever trains fastest on this
     # machine, measured by a short probe (gns_bench/autotune.py); the run records what it used.

@@ -92,9 +92,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=None, help="write allocator.md and allocator.json here")
     parser.add_argument("--particles", type=int, default=3000)
     parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--precision", action="append", choices=("fp32", "bf16"),
+                        help="repeatable; default fp32, and bf16 where this machine has a bf16 unit (as the bench)")
     args = parser.parse_args(argv)
-    rows = measure_allocator(args.particles, steps=args.steps)
+    if args.precision:
+        precisions, left_out = tuple(args.precision), ""
+    else:
+        import torch
+
+        from gns_bench.bench.run import BenchSettings, bench_precisions
+
+        precisions, left_out = bench_precisions(BenchSettings(), torch.device("cpu"))
+    rows = measure_allocator(args.particles, precisions=precisions, steps=args.steps)
     text = markdown(rows, hardware_description("cpu"))
+    if left_out:
+        text += f"\n{left_out[0].upper()}{left_out[1:]}.\n"
     print(text)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -129,8 +129,8 @@ def test_thread_counts_cover_one_the_powers_of_two_and_every_core() -> None:
     assert autotune.thread_counts(16) == [1, 2, 4, 8, 16]
 
 
-# seconds a training step took by thread count: an AVX2-only AMD EPYC's (family 25 model 1, 2,000 particles),
-# and a machine where the second thread helps a little
+# seconds a training step took by thread count: an AVX2-only AMD EPYC's in one session (family 25 model 1, 2,000
+# particles; in the next the second thread helped), and a machine where the second thread helps a little
 AVX2_EPYC = {1: 2.64, 2: 4.03}
 TWO_HELP_A_LITTLE = {1: 1.02, 2: 1.0}
 
