@@ -189,3 +189,7 @@ def test_a_machine_with_no_bf16_unit_benches_fp32_alone_and_its_report_says_why(
     write_bench_index(tmp_path / "bench")
     claims = "\n".join(bench_claims(tmp_path))
     assert "(bf16) (gns-bench's own target) | bench |" in claims and "| not measured |" in claims
+    (tmp_path / "bench" / "with-bf16").mkdir()  # beside a machine that measured every target
+    (tmp_path / "bench" / "with-bf16" / "bench.json").write_text(committed.read_text())
+    claims = "\n".join(bench_claims(tmp_path))
+    assert "| met (1 did not measure it) |" in claims  # the bf16 GEMM-rate target, met on family 26

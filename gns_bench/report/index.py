@@ -368,6 +368,8 @@ def bench_claims(reports_root: Path) -> list[str]:
         met = sum(judged)
         verdict = ("not measured" if not judged else "met" if met == len(judged) else "not met" if not met else
                    f"met on {met} of {len(judged)} machines")
+        if judged and len(judged) < len(measured):
+            verdict += f" ({len(measured) - len(judged)} did not measure it)"
         links = ", ".join(f"[{folder}](bench/{folder}/README.md)" for _, _, _, folder in measured)
         rows.append(f"| {target} (gns-bench's own target) | bench | {ours} | — | {verdict} | {links} |")
     return rows
