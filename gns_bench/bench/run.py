@@ -30,7 +30,7 @@ from gns_bench.bench.measure import (
 )
 from gns_bench.config import ModelConfig, TrainConfig
 from gns_bench.datasets import default_connectivity_radius
-from gns_bench.devices import cpu_generation, resolve_device, usable_cores
+from gns_bench.devices import cpu_generation, machine_key, resolve_device, usable_cores
 
 # Paper domains for the inference-time table (App. C.6): id, dim, max particles (Table 1), radius.
 INFERENCE_DOMAINS = [("waterdrop", 2, 1000), ("water", 2, 1900), ("sand", 2, 2000), ("goop", 2, 1900),
@@ -146,8 +146,8 @@ def measure_autotune(settings: BenchSettings, device: torch.device, steps: int =
     if device.type == "cpu":  # and what `train.num_threads = "auto"` picks, in fp32; the bench runs on every core
         threads, probe_model = torch.get_num_threads(), build_model(ModelConfig(), scene, device)
         try:
-            counts = autotune.choose_threads(lambda: step(probe_model, "fp32"), "bench", usable_cores(),
-                                             use_cache=False)
+            key = f"{machine_key(device)} | bench's training scene, {window.shape[0]} nodes, fp32"
+            counts = autotune.choose_threads(lambda: step(probe_model, "fp32"), key, usable_cores(), use_cache=False)
         finally:
             torch.set_num_threads(threads)
         picked["threads"] = {"chosen": counts.threads, "step_s": counts.seconds_per_step}
