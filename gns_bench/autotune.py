@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 from gns_bench.config import TrainConfig
-from gns_bench.devices import machine_key
+from gns_bench.devices import load_average, machine_key
 from gns_bench.model.simulator import LearnedSimulator, Simulator
 from gns_bench.timing import skinny_gemm_gflops
 
@@ -84,7 +84,7 @@ THREAD_MARGIN = 0.95  # fewer threads than cores are chosen only when they take 
 class ThreadChoice:
     threads: int
     seconds_per_step: dict[str, float] = field(default_factory=dict)  # thread count (as text) -> seconds a step
-    source: str = "probed"  # "probed", "cached", or "one core" (nothing to choose)
+    source: str = "probed"  # "probed", "cached", "one core" (nothing to choose), or probed under load (not cached)
 
     def describe(self) -> str:
         timings = ", ".join(f"{count} {seconds:.3g} s" for count, seconds in
@@ -102,7 +102,9 @@ def choose_threads(step: Callable[[], None], key: str, cores: int, *, use_cache:
                    clock: Callable[[], float] = time.perf_counter) -> ThreadChoice:
     """The torch thread count to train with on `cores` usable cores, set before it returns: each of
     `thread_counts(cores)` times `step()` (one training step on a copy of the model), and a count below all cores
-    is chosen when it is faster by `THREAD_MARGIN`. Cached under `key` (the machine, the model, the graph size)."""
+    is chosen when it is faster by `THREAD_MARGIN`. Cached under `key` (the machine, the model, the graph size),
+    unless the load average after the probe exceeds the cores: with another job on them, two threads ran a
+    100-node training step 6.5x slower than one (AVX2 EPYC), which says nothing of the machine alone."""
     counts = thread_counts(cores)
     cache = _read_cache()
     full_key = f"{key} | threads {'/'.join(map(str, counts))}"
@@ -117,9 +119,16 @@ def choose_threads(step: Callable[[], None], key: str, cores: int, *, use_cache:
             timings[str(count)], _ = _time(step, clock)
         fastest = min(timings, key=timings.get)
         chosen = int(fastest) if timings[fastest] <= THREAD_MARGIN * timings[str(cores)] else cores
+        load = load_average()
+        if load > cores + 0.5:  # another job shared the cores: more threads lost to it than they would alone
+            return _set(ThreadChoice(chosen, timings, f"probed under load {load:.1f}, not cached"))
         choice = ThreadChoice(chosen, timings)
         cache[full_key] = {k: v for k, v in asdict(choice).items() if k != "source"}
         _write_cache(cache)
+    return _set(choice)
+
+
+def _set(choice: ThreadChoice) -> ThreadChoice:
     torch.set_num_threads(choice.threads)
     return choice
 

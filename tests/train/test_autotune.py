@@ -150,6 +150,7 @@ def fake_clock(seconds_by_threads: dict[int, float]):
 def test_the_thread_probe_picks_fewer_threads_only_where_they_are_clearly_faster(
         machine: dict[int, float], chosen: int, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(autotune, "load_average", lambda: 0.4)  # a quiet machine, whatever the test machine's load
     before = torch.get_num_threads()
     try:
         step, clock = fake_clock(machine)
@@ -169,12 +170,29 @@ def test_the_thread_probe_picks_fewer_threads_only_where_they_are_clearly_faster
         torch.set_num_threads(before)
 
 
+def test_a_thread_probe_on_a_loaded_machine_is_used_but_not_cached(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(autotune, "load_average", lambda: 4.4)  # another 2-thread job on the 2 cores
+    before = torch.get_num_threads()
+    try:
+        step, clock = fake_clock(AVX2_EPYC)
+        choice = autotune.choose_threads(step, "a machine | a model", 2, clock=clock)
+        assert choice.threads == 1 and choice.source == "probed under load 4.4, not cached"
+        assert "(probed under load 4.4, not cached: 1 2.64 s" in choice.describe()
+        again = autotune.choose_threads(step, "a machine | a model", 2, clock=clock)
+        assert again.source.startswith("probed under load")  # timed again, not read back
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_num_threads_auto_trains_on_the_probed_count_and_a_resume_keeps_it(
         tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from gns_bench.train import loop
 
     monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(loop, "usable_cores", lambda: 2)  # whatever cores the test machine has
+    monkeypatch.setattr(loop, "usable_cores", lambda: 2)  # whatever cores and load the test machine has
+    monkeypatch.setattr(autotune, "load_average", lambda: 0.4)
     monkeypatch.setattr(loop, "set_threads", lambda requested: torch.set_num_threads(requested or 2) or
                         torch.get_num_threads())
     seen: list[int] = []  # torch's thread count at each logged step
