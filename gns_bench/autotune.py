@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 from gns_bench.config import TrainConfig
-from gns_bench.devices import load_average, machine_key
+from gns_bench.devices import load_average, load_limit, machine_key
 from gns_bench.model.simulator import LearnedSimulator, Simulator
 from gns_bench.timing import skinny_gemm_gflops
 
@@ -120,15 +120,12 @@ def choose_threads(step: Callable[[], None], key: str, cores: int, *, use_cache:
         fastest = min(timings, key=timings.get)
         chosen = int(fastest) if timings[fastest] <= THREAD_MARGIN * timings[str(cores)] else cores
         load = load_average()
-        if load > cores + 0.5:  # another job shared the cores: more threads lost to it than they would alone
-            return _set(ThreadChoice(chosen, timings, f"probed under load {load:.1f}, not cached"))
-        choice = ThreadChoice(chosen, timings)
-        cache[full_key] = {k: v for k, v in asdict(choice).items() if k != "source"}
-        _write_cache(cache)
-    return _set(choice)
-
-
-def _set(choice: ThreadChoice) -> ThreadChoice:
+        if load > load_limit(cores, cores):  # another job shared the cores: more threads lose to it than alone
+            choice = ThreadChoice(chosen, timings, f"probed under load {load:.1f}, not cached")
+        else:
+            choice = ThreadChoice(chosen, timings)
+            cache[full_key] = {k: v for k, v in asdict(choice).items() if k != "source"}
+            _write_cache(cache)
     torch.set_num_threads(choice.threads)
     return choice
 

@@ -132,6 +132,13 @@ def load_average() -> float:
         return float("nan")
 
 
+def load_limit(own_threads: int, cores: int | None = None) -> float:
+    """The 1-minute load average above which another job shares the cores (`cores`, or the usable ones) with a
+    process running `own_threads` threads: its own threads count in the load, so more than the cores (or its
+    threads) is someone else's (two 2-thread jobs on 2 cores made a training step about 10x slower)."""
+    return max(cores or usable_cores(), own_threads) + 0.5
+
+
 # glibc's mallopt parameters (malloc.h): M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_MAX.
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -2, -4, -8
 KEEP_MAPPED = {"trim_threshold": 64 << 30, "top_pad": 256 << 20, "mmap_max": 0, "arena_max": 1}

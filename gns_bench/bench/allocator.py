@@ -100,9 +100,9 @@ def main(argv: list[str] | None = None) -> None:
     else:
         import torch
 
-        from gns_bench.bench.run import BenchSettings, bench_precisions
+        from gns_bench.bench.run import machine_precisions
 
-        precisions, left_out = bench_precisions(BenchSettings(), torch.device("cpu"))
+        precisions, left_out = machine_precisions(torch.device("cpu"))
     rows = measure_allocator(args.particles, precisions=precisions, steps=args.steps)
     text = markdown(rows, hardware_description("cpu"))
     if left_out:

@@ -76,12 +76,18 @@ class BenchSettings:
 
 
 def bench_precisions(settings: BenchSettings, device: torch.device) -> tuple[tuple[str, ...], str]:
-    """The precisions to time every variant in, and what was left out and why. Given ones are kept. Otherwise
-    fp32, and bf16 where its products run faster than fp32's (`autotune.matmul_rates`): a CPU with no bf16 unit
-    runs them in a fallback, where the bench's bf16 rows would take hours to say what one product shows (on an
-    AVX2-only AMD EPYC, family 25 model 1, a 4096-square bf16 product ran over a minute)."""
+    """The precisions to time every variant in, and what was left out and why: the settings' own, or
+    `machine_precisions`."""
     if settings.precisions:
         return tuple(settings.precisions), ""
+    return machine_precisions(device)
+
+
+def machine_precisions(device: torch.device) -> tuple[tuple[str, ...], str]:
+    """fp32, and bf16 where its products run faster than fp32's (`autotune.matmul_rates`), with what was left out
+    and why: a CPU with no bf16 unit runs them in a fallback, where a benchmark's bf16 rows would take hours to say
+    what one product shows (on an AVX2-only AMD EPYC, family 25 model 1, a 4096-square bf16 product ran over a
+    minute)."""
     rates = autotune.matmul_rates(device)
     if rates.bf16_pays:
         return ("fp32", "bf16"), ""

@@ -29,7 +29,7 @@ from gns_bench.config import Config, ConfigError, TrainConfig, resolve_for_datas
 from gns_bench.data.format import KINEMATIC_PARTICLE_TYPE, Metadata, Trajectory, load_split, read_metadata
 from gns_bench.data.free_fall import falling_frames
 from gns_bench.data.windows import GraphBatch, WindowSampler, make_batch
-from gns_bench.devices import apply_allocator, load_average, resolve_device, set_threads, usable_cores
+from gns_bench.devices import apply_allocator, load_average, load_limit, resolve_device, set_threads, usable_cores
 from gns_bench.model.noise import random_walk_position_noise
 from gns_bench.model.simulator import LearnedSimulator, Simulator
 from gns_bench.progress import progress_bar
@@ -137,7 +137,7 @@ class LoadWatch:
 
     def __init__(self, own_threads: int):
         self.cores = usable_cores()
-        self.limit = max(self.cores, own_threads) + 0.5
+        self.limit = load_limit(own_threads)
         self.samples: list[float] = []
 
     def sample(self) -> None:
