@@ -27,7 +27,6 @@ import copy
 import json
 import math
 import os
-import statistics
 import time
 import warnings
 from collections.abc import Callable
@@ -39,7 +38,7 @@ import torch
 from gns_bench.config import TrainConfig
 from gns_bench.devices import load_average, load_limit, machine_key
 from gns_bench.model.simulator import LearnedSimulator, Simulator
-from gns_bench.timing import skinny_gemm_gflops
+from gns_bench.timing import skinny_gemm_gflops, timed_with_warmup
 
 MATMUL_SHAPE = (4096, 128, 128)  # an [E, L] x [L, L] product: the edge MLPs' (Sec. 2, L = 128), the GNS's commonest
 WARM_UP_STEPS = 3  # not timed: allocation, autotuning kernels, and compilation for compiled candidates
@@ -233,16 +232,7 @@ def _time(step: Callable[[], None], clock: Callable[[], float] = time.perf_count
     the run's settings. In the cpu campaign a probe paused for about three minutes measured compiled bf16 at
     22 s a step against 0.56 s eager (Intel Xeon family 6 model 207), and its run trained eagerly at 1.7 steps a
     second where compiled runs of that model trained at 2.2-2.5."""
-    started = clock()
-    for _ in range(WARM_UP_STEPS):
-        step()
-    warm_up = clock() - started
-    times = []
-    for _ in range(TIMED_STEPS):
-        started = clock()
-        step()
-        times.append(clock() - started)
-    seconds = float(statistics.median(times))
+    seconds, warm_up = timed_with_warmup(step, TIMED_STEPS, WARM_UP_STEPS, clock=clock)
     return seconds, max(warm_up - WARM_UP_STEPS * seconds, 0.0)
 
 

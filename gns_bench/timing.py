@@ -16,18 +16,27 @@ import torch
 def timed(fn: Callable[[], object], repeats: int = 5, warmup: int = 2, sync: Callable[[], None] | None = None
           ) -> float:
     """Median wall time of `fn` in seconds."""
+    return timed_with_warmup(fn, repeats, warmup, sync)[0]
+
+
+def timed_with_warmup(fn: Callable[[], object], repeats: int, warmup: int, sync: Callable[[], None] | None = None,
+                      clock: Callable[[], float] = time.perf_counter) -> tuple[float, float]:
+    """(median wall time of `repeats` calls of `fn` after `warmup` untimed ones, seconds the warm-up took): the
+    median, so that one call that stalled (a paused process, another job on the cores) does not decide."""
+    started = clock()
     for _ in range(warmup):
         fn()
+    warm_up = clock() - started
     times = []
     for _ in range(repeats):
         if sync:
             sync()
-        start = time.perf_counter()
+        start = clock()
         fn()
         if sync:
             sync()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        times.append(clock() - start)
+    return float(statistics.median(times)), warm_up
 
 
 def skinny_gemm_gflops(rows: int, width: int, dtype: torch.dtype, device: torch.device, repeats: int = 5) -> float:

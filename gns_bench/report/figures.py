@@ -16,7 +16,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib.animation import PillowWriter  # noqa: E402
 
 from gns_bench.data.format import type_colours  # noqa: E402
 from gns_bench.evaluate import metrics  # noqa: E402
@@ -326,7 +326,16 @@ def rollout_gif(result: RolloutResult, path: Path, title: str, max_frames: int =
         caption.set_text(f"{title} - step {step + 1}" + ("\nflagged: " + "; ".join(flagged) if flagged else ""))
         return scatters
 
-    animation = FuncAnimation(fig, draw, frames=len(steps), blit=False)
-    animation.save(path, writer=PillowWriter(fps=fps), dpi=60)
+    # Frames written straight to the writer: FuncAnimation drew each frame twice (for the screen, then for the
+    # file), and laying the figure out again every frame took half of each draw. The last frame's caption is the
+    # longest, so the figure is laid out once, for it.
+    draw(len(steps) - 1)
+    fig.canvas.draw()
+    fig.set_layout_engine("none")
+    writer = PillowWriter(fps=fps)
+    with writer.saving(fig, str(path), dpi=60):
+        for i in range(len(steps)):
+            draw(i)
+            writer.grab_frame()
     plt.close(fig)
     return path

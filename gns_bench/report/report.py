@@ -392,6 +392,8 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
             {"label": "best" if i == 0 else "worst", "trajectory": index, "mse": float(errors[index]),
              "steps": int(results[index].predicted.shape[0]), "stopped": results[index].stop_reason or ""}
             for i, index in enumerate(chosen)]}
+        if _drawn_before(picks, previous, out_dir):  # a report written again: the same run's same rollouts
+            return _rollout_lines(lines, row, done, model, previous), previous
         alone = len(picks["shown"]) == 1
         flagged = flag_marks(row.tag(f"{row.split}/rollouts_flagged"))
         for shown in picks["shown"]:
@@ -408,7 +410,25 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
         picks = previous  # the store that held the rollouts is gone; the committed pictures stand
     else:
         return lines + [f"Run {run_id_cell(row)} logged no rollouts.", ""], {}
-    lines += [f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{picks['split']}': "
+    return _rollout_lines(lines, row, done, model, picks), picks
+
+
+def _drawn_before(picks: dict, previous: dict | None, out_dir: Path) -> bool:
+    """Whether the pictures in `out_dir` show `picks` already: the last report drew the same trajectories of the
+    same run (their errors and stops the same) and every file it drew is there. Drawing them takes seconds a
+    report, and a campaign rewrites every report each time a sweep finishes."""
+    def chosen(p: dict) -> dict:  # the picture of rigidity is drawn whenever the rollouts hold a rigid body
+        return {k: v for k, v in p.items() if k != "rigidity"}
+
+    if not previous or chosen(previous) != chosen(picks):
+        return False
+    files = [f"rollout_{s['label']}.{ext}" for s in previous["shown"] for ext in ("png", "gif")]
+    return all((out_dir / name).is_file() for name in files + (["rigidity.png"] if previous.get("rigidity") else []))
+
+
+def _rollout_lines(lines: list[str], row: RunRow, done: list[RunRow], model: str, picks: dict) -> list[str]:
+    """`lines` and the section's text: which run's rollouts `picks` shows, and the pictures' links."""
+    lines = lines + [f"From run {run_id_cell(row)} ({row.planned.name}, lowest rollout MSE), split '{picks['split']}': "
               f"ground truth beside {'the GNS' if model == 'GNS' else model} on one frame; the MSE is of moving "
               "particles over the steps shown.", "", *_fairer_pick(row, done)]
     for shown in picks["shown"]:
@@ -418,7 +438,7 @@ def rollout_section(rows: list[RunRow], out_dir: Path, previous: dict | None = N
     if picks.get("rigidity"):
         lines += ["### Rigidity", "", f"Rigid-body drift of every test rollout ({figures.RIGIDITY_WORDS}).", "",
                   "![rigid-body drift](rigidity.png)", ""]
-    return lines, picks
+    return lines
 
 
 def _fairer_pick(shown: RunRow, done: list[RunRow]) -> list[str]:

@@ -275,9 +275,29 @@ def load_tier_defaults(sweeps_dir: Path = SWEEPS_DIR) -> dict[str, TierSpec]:
     return {tier: _tier_table(data[tier], path, tier, None) for tier in TIERS}
 
 
+_LOADED: dict[tuple[str, str, bytes, bytes], SweepSpec] = {}  # load_sweep's, by path and both files' bytes
+
+
 def load_sweep(path: str | Path, sweeps_dir: Path | None = None) -> SweepSpec:
+    """The sweep file at `path`, validated (every run of every tier planned), against the tier defaults of
+    `sweeps_dir` (by default the nearest folder above it holding `tiers.toml`). A file loaded before with the same
+    bytes, under the same defaults, is not parsed and planned again: the reports read every sweep many times."""
     path = Path(path)
     sweeps_dir = sweeps_dir or _find_sweeps_dir(path)
+    try:
+        key = (str(path.resolve()), str(sweeps_dir.resolve()), path.read_bytes(),
+               (sweeps_dir / TIERS_FILE).read_bytes())
+    except OSError:
+        key = None  # read_toml says what is missing
+    if key in _LOADED:
+        return _LOADED[key]
+    sweep = _load_sweep(path, sweeps_dir)
+    if key is not None:
+        _LOADED[key] = sweep
+    return sweep
+
+
+def _load_sweep(path: Path, sweeps_dir: Path) -> SweepSpec:
     defaults = load_tier_defaults(sweeps_dir)
     data = read_toml(path, SweepError)
     reject_unknown_keys(data, _SWEEP_KEYS, path)

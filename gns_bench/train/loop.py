@@ -182,12 +182,18 @@ class StepClock:
 
 
 def _speed_settings(config: Config, simulator: Simulator, sampler: WindowSampler, device: torch.device,
-                    world_size: int, steps_left: int) -> autotune.SpeedSettings:
+                    world_size: int, steps_left: int, saved: autotune.SpeedSettings | None = None
+                    ) -> autotune.SpeedSettings:
     """The precision and compile setting to train with, and with `train.num_threads = "auto"` the thread count
     (set here): the config's, or for "auto" the fastest on this machine (`autotune.choose_threads`, then
-    `autotune.choose` at that count). Under data parallelism every rank must agree without a probe of its own:
-    "auto" trains in fp32, uncompiled, on every core of the rank."""
+    `autotune.choose` at that count). A resumed run trains on with the settings it `saved`; only a thread count
+    it never chose (it trained on a given count, or before the setting existed) is probed now. Under data
+    parallelism every rank must agree without a probe of its own: "auto" trains in fp32, uncompiled, on every
+    core of the rank."""
     tc = config.train
+    probe_threads = tc.num_threads == "auto" and device.type == "cpu" and world_size == 1
+    if saved is not None and (saved.threads is not None or not probe_threads):
+        return saved
     if world_size > 1:
         return autotune.SpeedSettings("fp32" if tc.precision == "auto" else tc.precision,
                                       False if tc.compile == "auto" else bool(tc.compile))
@@ -205,12 +211,12 @@ def _speed_settings(config: Config, simulator: Simulator, sampler: WindowSampler
 
     nodes = batch.window.shape[0]
     threads = None
-    if tc.num_threads == "auto" and device.type == "cpu":  # before the precision probe: its timings depend on it
-        model, precision = copy.deepcopy(simulator), "fp32" if tc.precision == "auto" else tc.precision
-        key = f"{autotune.cache_key(tc, simulator, nodes, device)} | {precision}"
+    if probe_threads:  # before the precision probe: its timings depend on it
+        precision = saved.precision if saved else "fp32" if tc.precision == "auto" else tc.precision
+        model, key = copy.deepcopy(simulator), f"{autotune.cache_key(tc, simulator, nodes, device)} | {precision}"
         threads = autotune.choose_threads(lambda: probe_step(model, precision), key, usable_cores())
         del model
-    speed = autotune.choose(tc, simulator, probe_step, nodes, device, steps_left)
+    speed = saved or autotune.choose(tc, simulator, probe_step, nodes, device, steps_left)
     return dataclasses.replace(speed, threads=threads)
 
 
@@ -283,7 +289,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = out_dir / CHECKPOINT_NAME
-    step, earlier_wall_time, speed, resumed_window, saved_average = 0, 0.0, None, [], None
+    step, earlier_wall_time, saved_speed, resumed_window, saved_average = 0, 0.0, None, [], None
     curve_step = 0  # the last step whose curve point (train.eval_every) was logged
     start_from = (checkpoint_path if resume and checkpoint_path.exists()
                   else Path(tc.init_from) if tc.init_from and not checkpoint_path.exists() else None)
@@ -297,7 +303,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
         step = int(saved["step"])
         earlier_wall_time = float(saved.get("wall_time_s", 0.0))
         if "speed" in saved:  # a resumed run trains on with the settings it chose
-            speed = autotune.SpeedSettings.from_dict(saved["speed"])
+            saved_speed = autotune.SpeedSettings.from_dict(saved["speed"])
         # the losses since the last logged point, so the next point averages the same steps as without a stop
         resumed_window = [float(v) for v in saved.get("log_window", [])]
         # a resume evaluates the curve point a stop cut short; a branch starts where its trunk's curve has it
@@ -308,8 +314,7 @@ def train(config: Config, dataset_dir: str | Path, out_dir: str | Path, *, resum
     average = WeightAverage(simulator, tc.weight_average) if tc.weight_average else None
     if average is not None and saved_average is not None:
         average.load_state_dict(saved_average)
-    if speed is None:
-        speed = _speed_settings(config, simulator, sampler, device, group.world_size, tc.steps - step)
+    speed = _speed_settings(config, simulator, sampler, device, group.world_size, tc.steps - step, saved_speed)
     if speed.threads is not None and tc.num_threads == "auto":  # chosen now, or by the run this resumes
         threads = set_threads(speed.threads.threads)
     if speed.compile:

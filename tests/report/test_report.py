@@ -115,6 +115,28 @@ def test_domain_sweep_report(swept: dict[str, Path], tmp_path: Path) -> None:
                            "rollout_worst.gif"})
 
 
+def test_a_report_written_again_draws_its_rollouts_only_when_they_are_not_there(
+        swept: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gns_bench.report import figures
+
+    drawn: list[str] = []
+    for name in ("rollout_png", "rollout_gif"):
+        def counted(result, path, *args, real=getattr(figures, name), **kwargs):
+            drawn.append(path.name)
+            return real(result, path, *args, **kwargs)
+
+        monkeypatch.setattr(figures, name, counted)
+    first = write_report(swept["domain"], "smoke", tmp_path).read_text()
+    pictures = sorted(drawn)
+    assert "rollout_best.gif" in pictures and "rollout_best.png" in pictures
+    drawn.clear()
+    assert write_report(swept["domain"], "smoke", tmp_path).read_text() == first  # the same run, the same page
+    assert drawn == []  # and its pictures, there already, are not drawn again
+    (tmp_path / "domain-tiny" / "smoke" / "rollout_best.gif").unlink()
+    assert write_report(swept["domain"], "smoke", tmp_path).read_text() == first
+    assert sorted(drawn) == pictures  # one picture gone: the run's pictures are drawn again
+
+
 def test_ablation_sweep_report_marks_missing_values(swept: dict[str, Path], tmp_path: Path) -> None:
     path = swept["ablation"]
     path.write_text(path.read_text().replace('[0.0, 3e-4] }', '[0.0, 3e-4, 1e-3] }'))  # 1e-3 never ran

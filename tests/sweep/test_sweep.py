@@ -687,6 +687,20 @@ def test_the_default_point_takes_the_tiers_default_seeds(sweeps: Path) -> None:
         load_sweep(path)
 
 
+def test_a_sweep_loaded_again_reads_its_file_and_its_tiers_as_they_are_now(sweeps: Path) -> None:
+    """`load_sweep` keeps what it loaded (the reports read every sweep many times), by both files' bytes."""
+    path = sweeps / "tests" / "again.toml"
+    path.write_text(GRID)
+    first = load_sweep(path)
+    assert load_sweep(path) is first  # nothing changed: parsed and planned once
+    assert {r.config.train.steps for r in first.plan("smoke")} == {20}
+    tiers = sweeps / "tiers.toml"
+    tiers.write_text(tiers.read_text().replace("config.train = { steps = 20,", "config.train = { steps = 30,", 1))
+    assert {r.config.train.steps for r in load_sweep(path).plan("smoke")} == {30}  # the tiers' file changed
+    path.write_text(GRID + "\n[tiers.smoke.config.train]\nsteps = 40\n")
+    assert {r.config.train.steps for r in load_sweep(path).plan("smoke")} == {40}  # the sweep's own changed
+
+
 def test_a_stress_sweep_tests_the_model_a_domain_sweep_trained_instead_of_training_it(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")  # its runs shared with no test

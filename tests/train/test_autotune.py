@@ -186,47 +186,68 @@ def test_a_thread_probe_on_a_loaded_machine_is_used_but_not_cached(tmp_path: Pat
         torch.set_num_threads(before)
 
 
-def test_num_threads_auto_trains_on_the_probed_count_and_a_resume_keeps_it(
-        tiny_dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.fixture
+def probe_with(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """`probe_with(machine)`: thread probes from here on time a step as `machine` ({threads: seconds}) does, on
+    a quiet machine of 2 cores, whatever the test machine has; torch's thread count restored afterwards."""
     from gns_bench.train import loop
 
     monkeypatch.setenv("GNS_BENCH_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(loop, "usable_cores", lambda: 2)  # whatever cores and load the test machine has
+    monkeypatch.setattr(loop, "usable_cores", lambda: 2)
     monkeypatch.setattr(autotune, "load_average", lambda: 0.4)
     monkeypatch.setattr(loop, "set_threads", lambda requested: torch.set_num_threads(requested or 2) or
                         torch.get_num_threads())
+
+    def probe_with(machine: dict[int, float]) -> None:
+        def timed(step, clock=None):
+            step()  # the probe's step runs, its time taken from the machine described
+            return machine[torch.get_num_threads()], 0.0
+
+        monkeypatch.setattr(autotune, "_time", timed)
+
+    before = torch.get_num_threads()
+    yield probe_with
+    torch.set_num_threads(before)
+
+
+def test_num_threads_auto_trains_on_the_probed_count_and_a_resume_keeps_it(
+        tiny_dataset: Path, tmp_path: Path, probe_with) -> None:
     seen: list[int] = []  # torch's thread count at each logged step
 
     def on_log(step: int, metrics: dict) -> None:
         seen.append(torch.get_num_threads())
 
-    def probe_with(machine: dict[int, float]) -> None:
-        step_seconds = machine
+    probe_with(AVX2_EPYC)
+    config = load_config(None, QUICK + ["train.steps=10", "train.num_threads=auto"])
+    first = train(config, tiny_dataset, tmp_path / "a", progress=False, on_log=on_log)
+    assert first.speed.threads.threads == 1 and first.speed.threads.source == "probed"
+    assert seen and set(seen) == {1}
+    assert "1 thread (probed: 1 2.64 s, 2 4.03 s a step by thread count)" in first.speed.describe()
+    saved = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    assert saved["speed"]["threads"]["threads"] == 1
+    probe_with(TWO_HELP_A_LITTLE)  # the machine changed its mind: a resume must not ask again
+    seen.clear()
+    torch.set_num_threads(2)
+    longer = load_config(None, QUICK + ["train.steps=20", "train.num_threads=auto"])
+    resumed = train(longer, tiny_dataset, tmp_path / "a", resume=True, progress=False, on_log=on_log)
+    assert resumed.speed.threads.threads == 1 and set(seen) == {1}
+    fixed = train(load_config(None, QUICK + ["train.steps=5", "train.num_threads=2"]), tiny_dataset,
+                  tmp_path / "b", progress=False)
+    assert fixed.speed.threads is None and torch.get_num_threads() == 2  # a given count is not probed
+    probe_with(AVX2_EPYC)  # resumed with "auto": the count it never chose is probed, the rest kept
+    switched = train(load_config(None, QUICK + ["train.steps=10", "train.num_threads=auto"]), tiny_dataset,
+                     tmp_path / "b", resume=True, progress=False)
+    assert switched.speed.threads.threads == 1 and torch.get_num_threads() == 1
+    assert (switched.speed.precision, switched.speed.compile) == (fixed.speed.precision, fixed.speed.compile)
 
-        def timed(step, clock=None):
-            step()  # the probe's step runs, its time taken from the machine described
-            return step_seconds[torch.get_num_threads()], 0.0
 
-        monkeypatch.setattr(autotune, "_time", timed)
+def test_a_run_tagged_before_its_thread_count_was_chosen_names_the_count_it_trained_on(
+        tiny_dataset: Path, tmp_path: Path, probe_with) -> None:
+    from gns_bench import tracking
+    from gns_bench.pipeline import train_run
 
-    before = torch.get_num_threads()
-    try:
-        probe_with(AVX2_EPYC)
-        config = load_config(None, QUICK + ["train.steps=10", "train.num_threads=auto"])
-        first = train(config, tiny_dataset, tmp_path / "a", progress=False, on_log=on_log)
-        assert first.speed.threads.threads == 1 and first.speed.threads.source == "probed"
-        assert seen and set(seen) == {1}
-        assert "1 thread (probed: 1 2.64 s, 2 4.03 s a step by thread count)" in first.speed.describe()
-        saved = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-        assert saved["speed"]["threads"]["threads"] == 1
-        probe_with(TWO_HELP_A_LITTLE)  # the machine changed its mind: a resume must not ask again
-        seen.clear()
-        torch.set_num_threads(2)
-        longer = load_config(None, QUICK + ["train.steps=20", "train.num_threads=auto"])
-        resumed = train(longer, tiny_dataset, tmp_path / "a", resume=True, progress=False, on_log=on_log)
-        assert resumed.speed.threads.threads == 1 and set(seen) == {1}
-        fixed = train(load_config(None, QUICK + ["train.steps=5", "train.num_threads=2"]), tiny_dataset,
-                      tmp_path / "b", progress=False)
-        assert fixed.speed.threads is None and torch.get_num_threads() == 2  # a given count is not probed
-    finally:
-        torch.set_num_threads(before)
+    probe_with(AVX2_EPYC)
+    torch.set_num_threads(2)  # the run's tags are taken at 2 threads, before the probe picks 1
+    config = load_config(None, QUICK + ["train.steps=5", "train.num_threads=auto"])
+    summary = train_run(config, tiny_dataset, tmp_path / "run", evaluate_after=False, progress=False)
+    assert tracking.get_run(summary.run_id).tags["hardware"].endswith(", 1 thread")
