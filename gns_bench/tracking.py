@@ -8,6 +8,7 @@ KILLED: nothing that did not finish looks FINISHED.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import platform
@@ -266,17 +267,50 @@ class RunRecord:
     curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # metric -> (step, value), if read
 
 
+_VIEW: dict[tuple[str, str, str | None], list[RunRecord]] | None = None  # `search_runs`' answers in `one_view`
+
+
+@contextmanager
+def one_view() -> Iterator[None]:
+    """Within it, a search asked again answers as it did the first time (copies of the same records): a report
+    build reads every sweep's runs, at each tier, many times over (the front page alone about 300 searches),
+    and each search costs a query of the store. For readers: a run logged within is not seen by a search
+    already made. Nested views are one view."""
+    global _VIEW
+    if _VIEW is not None:
+        yield
+        return
+    _VIEW = {}
+    try:
+        yield
+    finally:
+        _VIEW = None
+
+
+def _copied(record: RunRecord) -> RunRecord:
+    return dataclasses.replace(record, params=dict(record.params), metrics=dict(record.metrics),
+                               tags=dict(record.tags), curves=dict(record.curves))
+
+
 def search_runs(filter_string: str = "", experiment: str | None = None) -> list[RunRecord]:
     """The (not deleted) runs matching an MLflow filter string, newest first: those of `experiment`, or of
     every experiment when it is None. An experiment that does not exist has no runs."""
+    key = (tracking_uri(), filter_string, experiment)
+    if _VIEW is not None and key in _VIEW:
+        return [_copied(r) for r in _VIEW[key]]
     mlflow = _mlflow()
     if experiment is not None and mlflow.get_experiment_by_name(experiment) is None:
-        return []
-    where = {"experiment_names": [experiment]} if experiment is not None else {"search_all_experiments": True}
-    runs = mlflow.search_runs(**where, filter_string=filter_string, output_format="list",
-                              order_by=["attributes.start_time DESC"])
-    return [RunRecord(r.info.run_id, r.info.run_name or "", r.info.status, int(r.info.start_time or 0),
-                      dict(r.data.params), dict(r.data.metrics), dict(r.data.tags)) for r in runs]
+        records = []
+    else:
+        where = {"experiment_names": [experiment]} if experiment is not None else {"search_all_experiments": True}
+        runs = mlflow.search_runs(**where, filter_string=filter_string, output_format="list",
+                                  order_by=["attributes.start_time DESC"])
+        records = [RunRecord(r.info.run_id, r.info.run_name or "", r.info.status, int(r.info.start_time or 0),
+                             dict(r.data.params), dict(r.data.metrics), dict(r.data.tags)) for r in runs]
+    if _VIEW is not None:
+        _VIEW[key] = records
+        return [_copied(r) for r in records]
+    return records
 
 
 def search_sweep_runs(experiment: str, tier: str | None = None) -> list[RunRecord]:

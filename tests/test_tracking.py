@@ -94,3 +94,30 @@ def test_benchmark_folders_keep_two_generations_of_one_model_name_apart(tmp_path
     info.write_text("processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Processor\ncpu family\t: 6\nmodel\t\t: 143\n"
                     "flags\t\t: avx512f amx_tile amx_bf16\n")
     assert machine_slug(torch.device("cpu"), info) == "intel-xeon-processor-family-6-model-143-amx"
+
+
+def test_one_view_answers_a_search_again_from_its_first_answer_and_ends_with_the_block(
+        client: MlflowClient, monkeypatch: pytest.MonkeyPatch) -> None:
+    with tracking.start_run("sweep:x", "first", tags={"tier": "smoke"}) as run:
+        run.log_metrics({"loss": 1.0}, step=0)
+    queries = []
+    real = tracking._mlflow
+
+    def counted():
+        queries.append(1)
+        return real()
+
+    monkeypatch.setattr(tracking, "_mlflow", counted)
+    with tracking.one_view():
+        seen = tracking.search_sweep_runs("sweep:x", "smoke")
+        seen[0].tags["tier"] = "changed by a reader"  # a reader's change stays with its copy
+        with tracking.one_view():  # nested: the same view
+            again = tracking.search_sweep_runs("sweep:x", "smoke")
+        with monkeypatch.context() as m:  # logged within the view: not seen by the search it answered before
+            m.setattr(tracking, "_mlflow", real)
+            with tracking.start_run("sweep:x", "second", tags={"tier": "smoke"}):
+                pass
+        assert [r.name for r in tracking.search_sweep_runs("sweep:x", "smoke")] == ["first"]
+        assert tracking.search_sweep_runs("sweep:x", "other") == []  # another search asks the store
+    assert len(queries) == 2 and again[0].tags["tier"] == "smoke" and again[0].run_id == seen[0].run_id
+    assert [r.name for r in tracking.search_sweep_runs("sweep:x", "smoke")] == ["second", "first"]  # view ended

@@ -18,12 +18,14 @@ from typing import Any
 
 SETTINGS = ("system", "keep")
 WARMUP = 5
+PAPER_M = 10  # message-passing steps (Sec. 4, App. C.1)
 
 
 def allocator_point(setting: str, particles: int, neighbours: float, precision: str, steps: int,
-                    warmup: int = WARMUP) -> dict[str, Any]:
+                    warmup: int = WARMUP, message_passing_steps: int = PAPER_M) -> dict[str, Any]:
     """`steps` training steps with the allocator as `setting` says (run in a fresh process: the setting holds for
-    the process's life)."""
+    the process's life), of the paper's model or one with fewer message-passing steps (the same tensors a
+    block, fewer blocks: the tests' quick point)."""
     import resource
     import time
 
@@ -36,7 +38,7 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
 
     used = apply_allocator(setting)
     scene = synthetic_scene(particles, 2, 0.015, neighbours=neighbours)
-    model = build_model(ModelConfig(), scene, torch.device("cpu"))
+    model = build_model(ModelConfig(message_passing_steps=message_passing_steps), scene, torch.device("cpu"))
     edges = model.build_graph(scene.window[:, -1])
     optimiser = adam(model.parameters(), 1e-4)
     for _ in range(warmup):  # warm-up: the heap grows to the step's size (about 4 steps with memory kept)
@@ -48,19 +50,22 @@ def allocator_point(setting: str, particles: int, neighbours: float, precision: 
     after = resource.getrusage(resource.RUSAGE_SELF)
     return {"setting": setting, "allocator": used, "particles": particles, "edges": int(edges.shape[1]),
             "precision": precision, "steps": steps, "threads": torch.get_num_threads(),
+            "message_passing_steps": message_passing_steps,
             "seconds_per_step": wall / steps, "system_seconds_per_step": (after.ru_stime - before.ru_stime) / steps,
             "minor_faults_per_step": (after.ru_minflt - before.ru_minflt) / steps}
 
 
 def measure_allocator(particles: int = 3000, neighbours: float = 28.0, precisions: tuple[str, ...] = ("fp32", "bf16"),
-                      steps: int = 10, warmup: int = WARMUP) -> list[dict[str, Any]]:
+                      steps: int = 10, warmup: int = WARMUP, message_passing_steps: int = PAPER_M
+                      ) -> list[dict[str, Any]]:
     """Both settings, each precision, one fresh process each (GLIBC_TUNABLES cleared so "system" is glibc's own)."""
     rows = []
     env = {k: v for k, v in os.environ.items() if k != "GLIBC_TUNABLES"} | {"PYTHONWARNINGS": "ignore"}
     for precision in precisions:
         for setting in SETTINGS:
             code = ("import json; from gns_bench.bench.allocator import allocator_point; print(json.dumps("
-                    f"allocator_point({setting!r}, {particles}, {neighbours}, {precision!r}, {steps}, {warmup})))")
+                    f"allocator_point({setting!r}, {particles}, {neighbours}, {precision!r}, {steps}, {warmup}, "
+                    f"{message_passing_steps})))")
             done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
             rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
     return rows
@@ -68,7 +73,9 @@ def measure_allocator(particles: int = 3000, neighbours: float = 28.0, precision
 
 def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
     """The rows side by side, each setting's step against the system default's of the same precision."""
-    lines = [f"Training step of the paper's model (M = 10, latent 128) on {rows[0]['particles']:,} particles, "
+    m = rows[0].get("message_passing_steps", PAPER_M)
+    model = "the paper's model (M = 10" if m == PAPER_M else f"the paper's model with M = {m} (the paper's 10"
+    lines = [f"Training step of {model}, latent 128) on {rows[0]['particles']:,} particles, "
              f"{rows[0]['edges']:,} edges (the density of a batch of two 1,500-particle frames), "
              f"{rows[0]['threads']} threads, {hardware}; {rows[0]['steps']} steps after {WARMUP} of warm-up, each "
              "setting in a fresh process.", "",

@@ -12,7 +12,7 @@ import math
 import tempfile
 from pathlib import Path
 
-from gns_bench import simulators
+from gns_bench import simulators, tracking
 from gns_bench.data.format import RIGID_PARTICLE_TYPE
 from gns_bench.evaluate import metrics
 from gns_bench.evaluate import registry as metric_registry
@@ -581,18 +581,20 @@ def write_all_reports(tier: str = "smoke", reports_root: Path = Path("reports"),
     shown as missing) and the front page. Returns the README paths in that order."""
     written = []
     specs = [load_sweep(path) for path in discover_sweeps(sweeps_dir)]
-    for spec in sorted(specs, key=lambda sweep: sweep.kind != "domain"):  # domains first: the others link to them
-        rows = collect(spec, tier, reports_root)
-        if any(row.record for row in rows):
-            written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
-    return written + write_overviews(tier, reports_root)
+    with tracking.one_view():  # the same runs are read for many pages
+        for spec in sorted(specs, key=lambda sweep: sweep.kind != "domain"):  # domains first: others link to them
+            rows = collect(spec, tier, reports_root)
+            if any(row.record for row in rows):
+                written.append(write_sweep_report(spec, tier, reports_root / spec.name / tier, rows))
+        return written + write_overviews(tier, reports_root)
 
 
 def write_overviews(tier: str, reports_root: Path = Path("reports")) -> list[Path]:
     """The pages that read every sweep of a tier: the domain table, the stability and baselines reports (gaps
     shown as missing), then the front page. A campaign rewrites them after each sweep, so that the committed
     reports agree with each other at any point."""
-    return [write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier),
-            write_stability_report(tier, reports_root / "stability" / tier),
-            write_baselines_report(tier, reports_root / "baselines" / tier, reports_root),
-            write_index(reports_root)]
+    with tracking.one_view():  # the same runs are read for many pages
+        return [write_domains_report(domain_sweeps(), tier, reports_root / "domains" / tier),
+                write_stability_report(tier, reports_root / "stability" / tier),
+                write_baselines_report(tier, reports_root / "baselines" / tier, reports_root),
+                write_index(reports_root)]

@@ -120,12 +120,15 @@ def test_a_report_written_again_draws_its_rollouts_only_when_they_are_not_there(
     from gns_bench.report import figures
 
     drawn: list[str] = []
-    for name in ("rollout_png", "rollout_gif"):
-        def counted(result, path, *args, real=getattr(figures, name), **kwargs):
+
+    def counting(real):
+        def counted(result, path, *args, **kwargs):
             drawn.append(path.name)
             return real(result, path, *args, **kwargs)
+        return counted
 
-        monkeypatch.setattr(figures, name, counted)
+    for name in ("rollout_png", "rollout_gif"):
+        monkeypatch.setattr(figures, name, counting(getattr(figures, name)))
     first = write_report(swept["domain"], "smoke", tmp_path).read_text()
     pictures = sorted(drawn)
     assert "rollout_best.gif" in pictures and "rollout_best.png" in pictures
