@@ -97,6 +97,9 @@ def test_bench_writes_json_markdown_and_plot(tmp_path, monkeypatch: pytest.Monke
     assert all(r["full_s"] > 0 and r["moving_only_s"] > 0 for r in skips)
     assert all(r["max_difference"] <= (1e-4 if r["precision"] == "fp32" else 5e-2) for r in skips)
     assert "## Skipping kinematic particles' work in a rollout step" in readme
+    # the one-step forward at the settings' sizes (the full bench's 2,000-particle graphs of 16 windows took a
+    # minute of this test's two)
+    assert [(r["particles"], r["windows"]) for r in saved["one_step"]] == [(100, 1), (100, 2)]
 
 
 def test_a_run_whose_machine_slowed_down_says_so_and_a_steady_one_says_it_held() -> None:

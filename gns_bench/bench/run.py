@@ -61,18 +61,22 @@ class BenchSettings:
     # the precisions every variant is timed in; empty: fp32, and bf16 where this machine multiplies faster in it
     # (`bench_precisions`)
     precisions: tuple[str, ...] = ()
+    # the one-step forward's particle counts and windows batched into a graph; empty: bench/one_step.py's own
+    one_step_particles: tuple[int, ...] = ()
+    one_step_windows: tuple[int, ...] = ()
 
     @classmethod
     def quick(cls) -> BenchSettings:
         """Seconds, not minutes: for tests and a first look."""
         return cls(train_particles=400, scaling_2d=(500, 1000), scaling_3d=(500,),
-                   inference_domains=[("waterdrop", 2, 1000), ("boxbath", 3, 1000)], repeats=2, compile=False)
+                   inference_domains=[("waterdrop", 2, 1000), ("boxbath", 3, 1000)], repeats=2, compile=False,
+                   one_step_particles=(400,), one_step_windows=(1, 2, 4))
 
     @classmethod
     def tiny(cls) -> BenchSettings:
         """The smallest run that exercises every measurement (tests)."""
         return cls(train_particles=100, scaling_2d=(200,), scaling_3d=(), inference_domains=[("waterdrop", 2, 200)],
-                   repeats=1, gemm_sizes=(256,), compile=False)
+                   repeats=1, gemm_sizes=(256,), compile=False, one_step_particles=(100,), one_step_windows=(1, 2))
 
 
 def bench_precisions(settings: BenchSettings, device: torch.device) -> tuple[tuple[str, ...], str]:
@@ -272,7 +276,8 @@ def run_bench(out_dir: str | Path, settings: BenchSettings | None = None,
     results["static_encodings"] = skips.measure_encodings(settings.train_particles, repeats=settings.repeats,
                                                           precisions=precisions)
     print("windows a one-step forward...", flush=True)
-    results["one_step"] = one_step.measure(repeats=settings.repeats)
+    results["one_step"] = one_step.measure(settings.one_step_particles or one_step.PARTICLES,
+                                           settings.one_step_windows or one_step.WINDOWS, repeats=settings.repeats)
     print("scaling in particle count...", flush=True)
     results["scaling"] = measure_scaling(settings)
     results["steadiness"] = measure_steadiness(results["train"], settings, device)
