@@ -74,7 +74,8 @@ def measure_allocator(particles: int = 3000, neighbours: float = 28.0, precision
 def markdown(rows: list[dict[str, Any]], hardware: str) -> str:
     """The rows side by side, each setting's step against the system default's of the same precision."""
     m = rows[0].get("message_passing_steps", PAPER_M)
-    model = "the paper's model (M = 10" if m == PAPER_M else f"the paper's model with M = {m} (the paper's 10"
+    model = (f"the paper's model (M = {PAPER_M}" if m == PAPER_M
+             else f"the paper's model with M = {m} (the paper's {PAPER_M}")
     lines = [f"Training step of {model}, latent 128) on {rows[0]['particles']:,} particles, "
              f"{rows[0]['edges']:,} edges (the density of a batch of two 1,500-particle frames), "
              f"{rows[0]['threads']} threads, {hardware}; {rows[0]['steps']} steps after {WARMUP} of warm-up, each "

@@ -137,7 +137,7 @@ class LoadWatch:
 
     def __init__(self, own_threads: int):
         self.cores = usable_cores()
-        self.limit = load_limit(own_threads)
+        self.limit = load_limit(own_threads, self.cores)
         self.samples: list[float] = []
 
     def sample(self) -> None:
